@@ -1,0 +1,432 @@
+"""Experiment folders: ``experiment.toml`` and the images and annotations it names.
+
+An experiment folder looks like::
+
+    my_experiment/experiment.toml
+      name = "..."
+      pixel_size_um = 0.03          # optional when the images carry SEM metadata
+      [stereo]
+      views = ["end_state/a.tif", "end_state/b.tif"]      # 2 or more
+      tilt_deg = [-5.0, 5.0]        # optional stage tilts (about the image y axis)
+      camera = "affine"             # or "perspective"; default affine
+      correspondences = "annotations/correspondences.csv" # optional
+      lines = "annotations/lines.json"                    # optional
+      [series]
+      frames = ["series/f00.tif", ...]   # or a glob; chronological, earliest first
+      cycles = [...]                # optional, one per frame
+      minutes = [...]               # optional, one per frame
+
+Paths are relative to the TOML file. ``[stereo]`` and ``[series]`` are each optional but not
+both absent. Values in the TOML override the SEM metadata of the images; a disagreement is
+reported as a warning and kept in :attr:`Experiment.notes`.
+
+:func:`load` validates everything that can be checked without heavy computation and raises
+:class:`~semlab.errors.ExperimentError` naming the file, the key and the fix.
+"""
+
+from __future__ import annotations
+
+import difflib
+import glob as _glob
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ExperimentError
+from .io import IMAGE_SUFFIXES, read_image
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+TOML_NAME = "experiment.toml"
+TOP_KEYS = {"name", "description", "pixel_size_um", "stereo", "series"}
+STEREO_KEYS = {"views", "tilt_deg", "camera", "correspondences", "lines"}
+SERIES_KEYS = {"frames", "cycles", "minutes"}
+CAMERAS = ("affine", "perspective")
+#: Relative disagreement between TOML and metadata pixel sizes that is reported.
+PIXEL_SIZE_RTOL = 0.01
+#: Disagreement in degrees between TOML and metadata tilts that is reported.
+TILT_ATOL_DEG = 0.05
+
+
+@dataclass
+class StereoSpec:
+    """The ``[stereo]`` table: end-state views at two or more stage tilts.
+
+    Attributes
+    ----------
+    view_paths : list of Path
+    tilt_deg : list of float or None
+        Stage tilt of each view in degrees, from the TOML or the image metadata; None when
+        neither gives all of them (then tilts must be estimated, which needs 3+ views).
+    tilt_source : str
+        ``"experiment"``, ``"metadata"`` or ``"unknown"``.
+    camera : str
+        ``"affine"`` (default) or ``"perspective"``.
+    correspondences_path, lines_path : Path or None
+    shape : (H, W)
+        Image-area size shared by all views.
+    """
+
+    view_paths: list
+    tilt_deg: list | None
+    tilt_source: str
+    camera: str = "affine"
+    correspondences_path: Path | None = None
+    lines_path: Path | None = None
+    shape: tuple = (0, 0)
+
+
+@dataclass
+class SeriesSpec:
+    """The ``[series]`` table: frontal frames during the test, earliest first.
+
+    Attributes
+    ----------
+    frame_paths : list of Path
+        Chronological (frame 0 is the earliest).
+    cycles, minutes : (F,) float arrays or None
+    shape : (H, W)
+    """
+
+    frame_paths: list
+    cycles: np.ndarray | None = None
+    minutes: np.ndarray | None = None
+    shape: tuple = (0, 0)
+
+
+@dataclass
+class Experiment:
+    """A validated experiment. Images are read lazily and cached.
+
+    Attributes
+    ----------
+    name : str
+    toml_path : Path
+    root : Path
+        Folder of the TOML file; relative paths are resolved against it.
+    pixel_size_um : float
+    pixel_size_source : str
+        ``"experiment"`` (the TOML) or ``"metadata:<file name>"``.
+    stereo : StereoSpec or None
+    series : SeriesSpec or None
+    notes : list of str
+        Disagreements between the TOML and the image metadata, and other remarks.
+    """
+
+    name: str
+    toml_path: Path
+    root: Path
+    pixel_size_um: float
+    pixel_size_source: str
+    stereo: StereoSpec | None = None
+    series: SeriesSpec | None = None
+    description: str = ""
+    notes: list = field(default_factory=list)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    # -- images ---------------------------------------------------------------------------
+    def _image(self, path):
+        key = str(path)
+        if key not in self._cache:
+            self._cache[key] = read_image(path).data
+        return self._cache[key]
+
+    def views(self):
+        """End-state views as a list of (H, W) float64 arrays (raw intensity), in view order."""
+        if self.stereo is None:
+            raise ExperimentError(f"{self.toml_path}: this experiment has no [stereo] table")
+        return [self._image(p) for p in self.stereo.view_paths]
+
+    def frames(self, progress=False):
+        """Series frames as a list of (H, W) float64 arrays, earliest first."""
+        if self.series is None:
+            raise ExperimentError(f"{self.toml_path}: this experiment has no [series] table")
+        paths = self.series.frame_paths
+        if progress:
+            from tqdm.auto import tqdm
+            paths = tqdm(paths, desc="reading frames")
+        return [self._image(p) for p in paths]
+
+    def correspondences(self):
+        """The stereo correspondences file parsed, or None when the TOML names none.
+
+        Returns
+        -------
+        semlab.annotations.Correspondences or None
+            ``pts`` is an (N, V, 2) array of (x, y) pixels, one column pair per view.
+        """
+        if self.stereo is None or self.stereo.correspondences_path is None:
+            return None
+        from .annotations import read_correspondences
+
+        shape = self.stereo.shape
+        return read_correspondences(self.stereo.correspondences_path,
+                                    n_views=len(self.stereo.view_paths),
+                                    image_shapes=[shape] * len(self.stereo.view_paths))
+
+    def lines(self):
+        """The vanishing-point line families (list per view of {family: (M, 4) array}) or None."""
+        if self.stereo is None or self.stereo.lines_path is None:
+            return None
+        from .vanishing import read_lines
+
+        return read_lines(self.stereo.lines_path)
+
+    @property
+    def truth_dir(self):
+        """``truth/`` beside the TOML when the experiment is synthetic, else None."""
+        d = self.root / "truth"
+        return d if d.is_dir() else None
+
+    def summary(self):
+        """A human-readable multi-line description (what ``semlab info`` prints)."""
+        out = [f"experiment: {self.name}", f"  file: {self.toml_path}",
+               f"  pixel size: {self.pixel_size_um:.6g} µm/px (from {self.pixel_size_source})"]
+        if self.stereo is not None:
+            st = self.stereo
+            h, w = st.shape
+            out.append(f"  stereo: {len(st.view_paths)} views, {w}×{h} px, camera {st.camera}")
+            for i, p in enumerate(st.view_paths):
+                t = "unknown" if st.tilt_deg is None else f"{st.tilt_deg[i]:+.3f}°"
+                out.append(f"    view {i}: {p.relative_to(self.root) if p.is_relative_to(self.root) else p}"
+                           f"  tilt {t}")
+            out.append(f"  tilts from: {st.tilt_source}")
+            out.append(f"  correspondences: {st.correspondences_path or 'none (automatic matching)'}")
+            out.append(f"  lines: {st.lines_path or 'none'}")
+        else:
+            out.append("  stereo: none")
+        if self.series is not None:
+            se = self.series
+            h, w = se.shape
+            out.append(f"  series: {len(se.frame_paths)} frames, {w}×{h} px, earliest first")
+            out.append(f"    first: {se.frame_paths[0].name}, last: {se.frame_paths[-1].name}")
+            if se.cycles is not None:
+                out.append(f"    cycles: {se.cycles[0]:g} … {se.cycles[-1]:g}")
+            if se.minutes is not None:
+                out.append(f"    minutes: {se.minutes[0]:g} … {se.minutes[-1]:g}")
+        else:
+            out.append("  series: none")
+        if self.truth_dir is not None:
+            out.append(f"  ground truth: {self.truth_dir}")
+        for n in self.notes:
+            out.append(f"  note: {n}")
+        return "\n".join(out)
+
+
+# -- validation helpers -----------------------------------------------------------------------
+def _check_keys(table, allowed, where, toml_path):
+    for key in table:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.5)
+            hint = f"did you mean {close[0]!r}?" if close else f"valid keys: {', '.join(sorted(allowed))}"
+            raise ExperimentError(f"{toml_path}: unknown key {key!r} in {where}; {hint}")
+
+
+def _resolve(root, rel, key, toml_path, must_exist=True):
+    if not isinstance(rel, str) or not rel:
+        raise ExperimentError(f"{toml_path}: {key} must be a path string relative to the TOML file, "
+                              f"got {rel!r}")
+    p = (root / rel).resolve() if not Path(rel).is_absolute() else Path(rel)
+    if must_exist and not p.is_file():
+        raise ExperimentError(f"{toml_path}: {key} = {rel!r}: file not found ({p}); "
+                              "paths are relative to the TOML file")
+    return p
+
+
+def _number_list(value, key, toml_path, n=None):
+    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                              for v in value):
+        raise ExperimentError(f"{toml_path}: {key} must be a list of numbers, got {value!r}")
+    arr = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise ExperimentError(f"{toml_path}: {key} contains nan or inf")
+    if n is not None and len(arr) != n:
+        raise ExperimentError(f"{toml_path}: {key} has {len(arr)} values but there are {n} "
+                              f"{'views' if 'stereo' in key else 'frames'}; give one per image")
+    return arr
+
+
+def _image_header(path):
+    """(shape, pixel_size_um, tilt_deg) of an image, reading it once."""
+    im = read_image(path)
+    return im.shape, im.pixel_size_um, im.tilt_deg
+
+
+def _check_same_shape(shapes, paths, what, toml_path):
+    ref = shapes[0]
+    for p, s in zip(paths, shapes):
+        if s != ref:
+            raise ExperimentError(
+                f"{toml_path}: {what} must all have the same size; {paths[0].name} is "
+                f"{ref[1]}×{ref[0]} px but {p.name} is {s[1]}×{s[0]} px. Crop or re-export them "
+                "at one resolution")
+
+
+def _expand_frames(frames, root, toml_path):
+    if isinstance(frames, str):
+        pattern = frames if Path(frames).is_absolute() else str(root / frames)
+        found = sorted(p for p in (Path(x) for x in _glob.glob(pattern))
+                       if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not found:
+            raise ExperimentError(f"{toml_path}: [series] frames = {frames!r} matches no image "
+                                  f"file (looked for {pattern}); check the pattern")
+        return found
+    if not isinstance(frames, list) or not frames:
+        raise ExperimentError(f"{toml_path}: [series] frames must be a list of paths or a glob "
+                              "string, earliest frame first")
+    return [_resolve(root, f, f"[series] frames[{i}]", toml_path) for i, f in enumerate(frames)]
+
+
+def _check_increasing(arr, key, toml_path):
+    if arr is not None and np.any(np.diff(arr) <= 0):
+        i = int(np.argmax(np.diff(arr) <= 0))
+        raise ExperimentError(f"{toml_path}: {key} must increase strictly (frames are "
+                              f"chronological), but value {i + 1} ({arr[i + 1]:g}) follows "
+                              f"{arr[i]:g}")
+
+
+def _read_toml(toml_path):
+    try:
+        with open(toml_path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ExperimentError(f"{toml_path}: not valid TOML ({exc}); fix the syntax at that line") from exc
+
+
+def _find_toml(path):
+    path = Path(path)
+    if path.is_dir():
+        path = path / TOML_NAME
+    if not path.is_file():
+        raise ExperimentError(f"{path}: experiment file not found; give the experiment folder "
+                              f"or its {TOML_NAME} (see the README for the format)")
+    return path.resolve()
+
+
+def load(path) -> Experiment:
+    """Load and validate an experiment.
+
+    Parameters
+    ----------
+    path : str or Path
+        The experiment folder or its ``experiment.toml``.
+
+    Returns
+    -------
+    Experiment
+
+    Raises
+    ------
+    ExperimentError
+        With the file, the key and the fix: missing files, unknown keys (the nearest valid
+        key is suggested), fewer than 2 views, images of different sizes, a glob matching
+        nothing, cycles/minutes not increasing or of the wrong length, no pixel size anywhere,
+        invalid correspondences or lines files.
+    """
+    toml_path = _find_toml(path)
+    root = toml_path.parent
+    cfg = _read_toml(toml_path)
+    _check_keys(cfg, TOP_KEYS, "the top level", toml_path)
+    if "stereo" not in cfg and "series" not in cfg:
+        raise ExperimentError(f"{toml_path}: neither [stereo] nor [series] is given; an experiment "
+                              "needs at least one of them")
+    notes = []
+    meta_pixel_sizes = []  # (value, file) from image metadata
+
+    stereo = None
+    if "stereo" in cfg:
+        st = cfg["stereo"]
+        if not isinstance(st, dict):
+            raise ExperimentError(f"{toml_path}: stereo must be a table [stereo]")
+        _check_keys(st, STEREO_KEYS, "[stereo]", toml_path)
+        views = st.get("views")
+        if not isinstance(views, list) or len(views) < 2:
+            raise ExperimentError(f"{toml_path}: [stereo] views must list 2 or more images (stage "
+                                  f"tilts of the same area), got {views!r}")
+        view_paths = [_resolve(root, v, f"[stereo] views[{i}]", toml_path) for i, v in enumerate(views)]
+        headers = [_image_header(p) for p in view_paths]
+        _check_same_shape([h[0] for h in headers], view_paths, "[stereo] views", toml_path)
+        meta_pixel_sizes += [(h[1], p.name) for h, p in zip(headers, view_paths) if h[1] is not None]
+        camera = st.get("camera", "affine")
+        if camera not in CAMERAS:
+            close = difflib.get_close_matches(str(camera), CAMERAS, n=1)
+            raise ExperimentError(f"{toml_path}: [stereo] camera = {camera!r} is not one of "
+                                  f"{CAMERAS}" + (f"; did you mean {close[0]!r}?" if close else ""))
+        meta_tilts = [h[2] for h in headers]
+        if "tilt_deg" in st:
+            tilt = _number_list(st["tilt_deg"], "[stereo] tilt_deg", toml_path, n=len(view_paths))
+            tilt_deg, tilt_source = [float(t) for t in tilt], "experiment"
+            for i, (t, m) in enumerate(zip(tilt_deg, meta_tilts)):
+                if m is not None and abs(t - m) > TILT_ATOL_DEG:
+                    notes.append(f"view {i} ({view_paths[i].name}): experiment.toml tilt {t:g}° "
+                                 f"overrides the image metadata {m:g}°")
+        elif all(m is not None for m in meta_tilts):
+            tilt_deg, tilt_source = [float(m) for m in meta_tilts], "metadata"
+        else:
+            tilt_deg, tilt_source = None, "unknown"
+        corr = st.get("correspondences")
+        lines = st.get("lines")
+        stereo = StereoSpec(
+            view_paths=view_paths, tilt_deg=tilt_deg, tilt_source=tilt_source, camera=camera,
+            correspondences_path=None if corr is None else _resolve(root, corr, "[stereo] correspondences", toml_path),
+            lines_path=None if lines is None else _resolve(root, lines, "[stereo] lines", toml_path),
+            shape=headers[0][0])
+
+    series = None
+    if "series" in cfg:
+        se = cfg["series"]
+        if not isinstance(se, dict):
+            raise ExperimentError(f"{toml_path}: series must be a table [series]")
+        _check_keys(se, SERIES_KEYS, "[series]", toml_path)
+        if "frames" not in se:
+            raise ExperimentError(f"{toml_path}: [series] needs frames = [...] or a glob string")
+        frame_paths = _expand_frames(se["frames"], root, toml_path)
+        headers = [_image_header(p) for p in frame_paths]
+        _check_same_shape([h[0] for h in headers], frame_paths, "[series] frames", toml_path)
+        meta_pixel_sizes += [(h[1], p.name) for h, p in zip(headers, frame_paths) if h[1] is not None]
+        n = len(frame_paths)
+        cycles = _number_list(se["cycles"], "[series] cycles", toml_path, n) if "cycles" in se else None
+        minutes = _number_list(se["minutes"], "[series] minutes", toml_path, n) if "minutes" in se else None
+        _check_increasing(cycles, "[series] cycles", toml_path)
+        _check_increasing(minutes, "[series] minutes", toml_path)
+        series = SeriesSpec(frame_paths=frame_paths, cycles=cycles, minutes=minutes,
+                            shape=headers[0][0])
+
+    if "pixel_size_um" in cfg:
+        ps = cfg["pixel_size_um"]
+        if isinstance(ps, bool) or not isinstance(ps, (int, float)) or not np.isfinite(ps) or ps <= 0:
+            raise ExperimentError(f"{toml_path}: pixel_size_um must be a positive number (µm per "
+                                  f"pixel), got {ps!r}")
+        pixel_size_um, source = float(ps), "experiment"
+        for m, name in meta_pixel_sizes:
+            if abs(m - ps) > PIXEL_SIZE_RTOL * ps:
+                notes.append(f"{name}: experiment.toml pixel_size_um {ps:g} µm overrides the image "
+                             f"metadata {m:g} µm")
+                break
+    elif meta_pixel_sizes:
+        pixel_size_um, name = meta_pixel_sizes[0]
+        source = f"metadata:{name}"
+        for m, other in meta_pixel_sizes[1:]:
+            if abs(m - pixel_size_um) > PIXEL_SIZE_RTOL * pixel_size_um:
+                notes.append(f"{other}: metadata pixel size {m:g} µm differs from {name} "
+                             f"({pixel_size_um:g} µm); using {pixel_size_um:g} µm")
+                break
+    else:
+        raise ExperimentError(f"{toml_path}: no pixel size anywhere: the images carry no SEM "
+                              "metadata; add pixel_size_um = <µm per pixel> to the top of the file")
+
+    exp = Experiment(name=str(cfg.get("name", root.name)), toml_path=toml_path, root=root,
+                     pixel_size_um=pixel_size_um, pixel_size_source=source, stereo=stereo,
+                     series=series, description=str(cfg.get("description", "")), notes=notes)
+    for n in notes:
+        warnings.warn(n, stacklevel=2)
+    # Parse the annotation files now so that a bad CSV or JSON fails at load time.
+    exp.correspondences()
+    exp.lines()
+    return exp

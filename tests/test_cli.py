@@ -1,0 +1,66 @@
+"""The command line: info, synth, run (refuses non-empty output folders)."""
+
+import numpy as np
+import pytest
+
+from semlab.cli import main
+
+
+def test_info_prints_summary(small_experiment_master, capsys):
+    assert main(["info", str(small_experiment_master)]) == 0
+    out = capsys.readouterr().out
+    assert "pixel size: 0.03 µm/px (from metadata:view_0.tif)" in out
+    assert "series: 4 frames" in out and "view 1:" in out
+
+
+def test_info_on_bad_folder_gives_error_exit(tmp_path, capsys):
+    assert main(["info", str(tmp_path)]) == 2
+    assert "experiment file not found" in capsys.readouterr().err
+
+
+def test_synth_writes_experiment(tmp_path):
+    out = tmp_path / "s"
+    assert main(["synth", str(out), "--seed", "2", "--size", "64x96", "--frames", "2",
+                 "--tilts=-5,0,5", "--clicks", "6", "--quiet"]) == 0
+    from semlab.experiment import load
+
+    exp = load(out)
+    assert exp.stereo.tilt_deg == [-5.0, 0.0, 5.0] and exp.stereo.shape == (64, 96)
+    assert len(exp.series.frame_paths) == 2
+    # and refuses to overwrite it
+    assert main(["synth", str(out), "--quiet"]) == 2
+
+
+def test_synth_series_only(tmp_path):
+    out = tmp_path / "s"
+    assert main(["synth", str(out), "--size", "64x96", "--frames", "3", "--tilts=", "--quiet"]) == 0
+    from semlab.experiment import load
+
+    exp = load(out)
+    assert exp.stereo is None and len(exp.frames()) == 3
+
+
+def test_run_refuses_nonempty_out(small_experiment_master, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "precious.txt").write_text("keep me")
+    assert main(["run", str(small_experiment_master), "--out", str(out), "--quiet"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert (out / "precious.txt").read_text() == "keep me"
+
+
+def test_run_unknown_notebook_number(small_experiment_master, tmp_path, capsys):
+    assert main(["run", str(small_experiment_master), "--out", str(tmp_path / "o"),
+                 "--only", "99", "--quiet"]) == 2
+    assert "no such notebook" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_run_executes_notebook_and_writes_html(small_experiment_master, tmp_path):
+    out = tmp_path / "report"
+    assert main(["run", str(small_experiment_master), "--out", str(out), "--only", "00",
+                 "--quiet"]) == 0
+    assert (out / "00_experiment.ipynb").is_file()
+    html = (out / "00_experiment.html").read_text()
+    assert "hide code" in html and "views=2 frames=4" in html
+    assert "00_experiment.html" in (out / "index.html").read_text()
