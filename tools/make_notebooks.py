@@ -102,6 +102,58 @@ print(f"views={n_views} frames={n_frames} pixel_size_um={exp.pixel_size_um:.4f}"
 ''', "views=2 frames=6 pixel_size_um=0.0300"),
 ]
 
+NOTEBOOKS["02_correspondences"] = [
+    md("""
+# 02 · Picking correspondences
+
+Click the same surface feature in every view. A click in one view proposes the match in the
+others (same place shifted by the offset of the points picked so far, moved onto the epipolar
+line once F is known, then refined by sub-pixel matching); press **a** or click the proposal
+to accept, drag a marker to adjust, select with a right click and press **d** to delete,
+**u** to undo; zoom with the toolbar. **Save** writes the experiment's correspondences CSV and
+keeps a backup of the file it replaces (`correspondences.bak.csv`, `.bak1.csv`, ...).
+
+The picker needs a live JupyterLab (ipympl). When this notebook is executed as a report, the
+interactive cell only shows a still picture and the cells after it read the saved file.
+"""),
+    params(),
+    code("%matplotlib widget\n" + SETUP.replace("%matplotlib inline\n", "")),
+    code('''
+from pathlib import Path
+if exp.stereo is None:
+    print("This experiment has no [stereo] table: nothing to pick.")
+    save_path = None
+else:
+    save_path = exp.stereo.correspondences_path or (exp.root / "annotations" / "correspondences.csv")
+    print("picks are saved to", save_path)
+    if exp.stereo.correspondences_path is None:
+        print('add  correspondences = "annotations/correspondences.csv"  to [stereo] in',
+              exp.toml_path.name, "to use them")
+'''),
+    code('''
+# NBVAL_SKIP  (interactive: needs a browser)
+from semlab.widgets import picker_widget
+if save_path is not None:
+    box = picker_widget(exp.views(), save_path, titles=[p.name for p in exp.stereo.view_paths])
+    display(box)
+'''),
+    md("## The saved points"),
+    code('''
+%matplotlib inline
+corr = exp.correspondences() if exp.stereo is not None else None
+if corr is None:
+    print("No correspondences file yet: pick points above and press Save (or run automatic "
+          "matching in 04_depth).")
+else:
+    fig, axes = plt.subplots(1, corr.n_views, figsize=(6 * corr.n_views, 4.5))
+    for i, ax in enumerate(np.atleast_1d(axes)):
+        plots.show_image(exp.views()[i], ax=ax, title=f"view {i}", points=corr.pts[:, i],
+                         labels=corr.point_id)
+    fig.tight_layout()
+    print(f"{corr.n_points} points in {corr.n_views} views")
+'''),
+]
+
 
 def main():
     HERE.mkdir(exist_ok=True)

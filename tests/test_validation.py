@@ -1,0 +1,38 @@
+import numpy as np
+import pytest
+
+from semlab import synth, validation
+from semlab.errors import SemlabError
+
+
+def test_height_errors_remove_plane_only():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (200, 2))
+    zt = rng.normal(0, 0.1, 200)
+    noise = rng.normal(0, 0.004, 200)
+    ze = zt + 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + 0.3 + noise
+    r = validation.height_errors(ze, zt, xy)
+    assert r["rmse_um"] == pytest.approx(np.std(noise), rel=0.1)
+    # a wrong relief (scaled heights) is not removed by the plane
+    r2 = validation.height_errors(1.2 * zt, zt, xy)
+    assert r2["rmse_um"] > 0.015
+    with pytest.raises(SemlabError):
+        validation.height_errors([1, 2], [1, 2])
+
+
+def test_true_heights_and_tracks_match_truth_points(small_experiment_master):
+    root = small_experiment_master
+    t = synth.read_truth_points(root / "truth")
+    grid = t["is_particle"] == 0
+    p0 = np.column_stack([t["v0_x_px"], t["v0_y_px"]])[grid]
+    z = validation.true_height_at(root, p0)
+    assert np.median(np.abs(z - t["z_um"][grid])) < 0.005
+    n_last = max(int(k[1:].split("_")[0]) for k in t if k.startswith("f") and k.endswith("_x_px"))
+    last = np.column_stack([t[f"f{n_last}_x_px"], t[f"f{n_last}_y_px"]])[grid]
+    pos = validation.true_track_positions(root, last)
+    assert pos.shape == (n_last + 1, grid.sum(), 2)
+    for n in range(n_last + 1):
+        true_n = np.column_stack([t[f"f{n}_x_px"], t[f"f{n}_y_px"]])[grid]
+        assert np.median(np.hypot(*(pos[n] - true_n).T)) < 0.01
+    with pytest.raises(SemlabError, match="no truth"):
+        validation.true_height_at(root / "end_state", p0)
