@@ -408,9 +408,11 @@ def to_uint16(img, lo=0.0, hi=1.2):
 # Calibration block (perspective camera, vanishing-point lines)
 
 BOX_DIMS = (40.0, 30.0, 20.0)
+#: Fractions of a face at which grid lines are ruled on the block.
+GRID_FRACTIONS = tuple(np.linspace(0.1, 0.9, 9))
 
 
-def block_camera(tilt_deg, shape, focal_px=2400.0):
+def block_camera(tilt_deg, shape, focal_px=None):
     """True K, R, t of the block view at stage tilt ``tilt_deg``.
 
     World frame: the box's edges along x, y, z (z up out of the stage). The base orientation
@@ -418,12 +420,16 @@ def block_camera(tilt_deg, shape, focal_px=2400.0):
     camera's y axis applied after it.
     """
     h, w = shape
-    K = np.array([[focal_px, 0, (w - 1) / 2 + 7.0], [0, focal_px, (h - 1) / 2 - 5.0], [0, 0, 1.0]])
+    # a short focal length (strong perspective) puts the vanishing points near the image, which
+    # is what makes them measurable; the box fills most of the image
+    focal_px = 1.37 * w if focal_px is None else focal_px
+    K = np.array([[focal_px, 0, (w - 1) / 2 + 0.014 * w], [0, focal_px, (h - 1) / 2 + 0.045 * h],
+                  [0, 0, 1.0]])
     r_base = (rotation_about_axis([1, 0, 0], np.deg2rad(-120.0))
               @ rotation_about_axis([0, 0, 1], np.deg2rad(35.0)))
     R = rotation_about_axis([0, 1, 0], np.deg2rad(tilt_deg)) @ r_base
     centre = np.array(BOX_DIMS) / 2
-    t = np.array([0.0, 0.0, 340.0]) - R @ centre
+    t = np.array([0.0, 0.0, 92.0]) - R @ centre
     return K, R, t
 
 
@@ -475,20 +481,38 @@ def render_block(tilt_deg, shape, line_noise_px=1.0, rng=None):
             shade = int(110 + 120 * abs(normal @ np.array([0.3, 0.5, 0.8])))
             cv2.fillPoly(img, [np.round(img_pts[ring] * 16).astype(np.int32)], shade,
                          lineType=cv2.LINE_AA, shift=4)
+    # visible edges, plus a grid ruled on the visible faces (as on a real calibration block):
+    # every segment is the image of a 3D line along x, y or z
+    segs3d = {name: [(corners[a], corners[b]) for a, b in pairs
+                     if any(a in f and b in f for f in visible_faces)]
+              for name, pairs in edges.items()}
+    dims = np.array(BOX_DIMS)
+    for ring, normal in faces:
+        if set(ring) not in visible_faces:
+            continue
+        axis = int(np.argmax(np.abs(normal)))
+        level = dims[axis] if normal[axis] > 0 else 0.0
+        b_ax, c_ax = [k for k in range(3) if k != axis]
+        for along, across in ((b_ax, c_ax), (c_ax, b_ax)):
+            for frac in GRID_FRACTIONS:
+                p = np.zeros(3)
+                p[axis] = level
+                p[across] = frac * dims[across]
+                q = p.copy()
+                q[along] = dims[along]
+                segs3d["xyz"[along]].append((p, q))
     families = {}
-    for name, pairs in edges.items():
-        segs = []
-        for a, b in pairs:
-            if any(a in f and b in f for f in visible_faces):
-                p, q = img_pts[a], img_pts[b]
-                cv2.line(img, tuple(np.round(p * 16).astype(int)), tuple(np.round(q * 16).astype(int)),
-                         255, 1, cv2.LINE_AA, shift=4)
-                # clicked end points: a little inside the ends, with click noise
-                p_in = p + 0.05 * (q - p)
-                q_in = q - 0.05 * (q - p)
-                seg = np.concatenate([p_in, q_in]) + rng.normal(0, line_noise_px, 4)
-                segs.append(seg)
-        families[name] = np.array(segs)
+    for name, lst in segs3d.items():
+        out = []
+        for p3, q3 in lst:
+            p, q = project_perspective(np.array([p3, q3]), K, R, t)
+            cv2.line(img, tuple(np.round(p * 16).astype(int)), tuple(np.round(q * 16).astype(int)),
+                     255, 1, cv2.LINE_AA, shift=4)
+            # clicked end points: a little inside the ends, with click noise
+            p_in = p + 0.05 * (q - p)
+            q_in = q - 0.05 * (q - p)
+            out.append(np.concatenate([p_in, q_in]) + rng.normal(0, line_noise_px, 4))
+        families[name] = np.array(out)
     return img, families, K, R, t
 
 
@@ -507,6 +531,7 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
                     n_frames=6, n_clicks=50, click_noise_px=0.5, line_noise_px=1.0,
                     slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0), band_angle_deg=35.0,
                     noise=0.01, frame_noise=0.015, early_contrast=0.12, write_block=True,
+                    block_size=(768, 1024),
                     name=None, overwrite=False, progress=True):
     """Write a complete synthetic experiment folder with ground truth.
 
@@ -525,6 +550,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         Hand-click-like correspondences (true positions + ``click_noise_px`` Gaussian noise).
     line_noise_px : float
         Click noise of the block's line end points.
+    block_size : (H, W)
+        Size of the calibration-block images (a separate, larger image than the views).
     slip_um, uniform_strain, band_angle_deg
         See :func:`make_scene`.
     noise, frame_noise : float
@@ -652,7 +679,7 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         if write_block:
             views_json, block_truth = [], {"box_dims": list(BOX_DIMS), "views": []}
             for i, t in enumerate(tilts):
-                img, fam, K, R, tt = render_block(t, size, line_noise_px, rng)
+                img, fam, K, R, tt = render_block(t, block_size, line_noise_px, rng)
                 import cv2
 
                 bpath = out / "calibration" / f"block_{i}.png"
