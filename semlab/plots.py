@@ -99,3 +99,74 @@ def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z (µm)", c
     if pixel_size_um:
         add_scale_bar(ax, np.shape(z_um), pixel_size_um)
     return ax
+
+
+FAMILY_COLOURS = ("tab:red", "tab:green", "tab:blue", "tab:orange", "tab:purple")
+
+
+def show_line_families(img, families, ax=None, title=None, vps=None):
+    """Line segments of each direction family over an image, extended toward their vanishing
+    points when ``vps`` (F, 3) homogeneous are given (only where the point is finite)."""
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(7, 5))
+    show_image(img, ax=ax, title=title)
+    h, w = np.shape(img)[:2]
+    for k, (name, segs) in enumerate(families.items()):
+        col = FAMILY_COLOURS[k % len(FAMILY_COLOURS)]
+        segs = np.asarray(segs)
+        for i, (x1, y1, x2, y2) in enumerate(segs):
+            ax.plot([x1, x2], [y1, y2], "-", color=col, lw=1.5, label=f"family {name}" if i == 0 else None)
+        if vps is not None and abs(vps[k][2]) > 1e-12:
+            vx, vy = vps[k][0] / vps[k][2], vps[k][1] / vps[k][2]
+            for x1, y1, x2, y2 in segs:
+                ax.plot([(x1 + x2) / 2, vx], [(y1 + y2) / 2, vy], ":", color=col, lw=0.6)
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.legend(loc="lower right", fontsize=8)
+    return ax
+
+
+def show_epipolar_lines(img0, img1, F, x0, x1, n_lines=12, title=""):
+    """Both views with matched points and the epipolar lines of a subset of them.
+
+    ``F`` maps view 0 to view 1 (``x1ᵀ F x0 = 0``): the line of a point of view 0 is drawn in
+    view 1 and that of a point of view 1 (``Fᵀ x1``) in view 0.
+    """
+    from .epipolar import epipolar_lines
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
+    idx = np.linspace(0, len(x0) - 1, min(n_lines, len(x0))).round().astype(int)
+    for ax, img, pts, other, view in ((axes[0], img0, x0, x1, 1), (axes[1], img1, x1, x0, 0)):
+        show_image(img, ax=ax, points=pts, title=f"view {1 - view}{title}")
+        h, w = img.shape[:2]
+        lines = epipolar_lines(F, other[idx], from_view=view)
+        xs = np.array([0, w - 1.0])
+        for (a, b, c), col in zip(lines, plt.cm.tab20(np.linspace(0, 1, len(idx)))):
+            if abs(b) > 1e-9:
+                ax.plot(xs, -(a * xs + c) / b, "-", color=col, lw=0.8)
+            else:
+                ax.axvline(-c / a, color=col, lw=0.8)
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+    fig.tight_layout()
+    return fig
+
+
+def plot_stability(stab, ax=None, label=None):
+    """F and epipole change against the number of correspondences used (median ± IQR/2)."""
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 4))
+    n = stab["sizes"]
+    for key, name in (("f_angle_deg", "F"), ("epipole_angle_deg", "epipole / epipolar direction")):
+        med, iqr = stab[f"{key}_median"], stab[f"{key}_iqr"]
+        ax.errorbar(n, med, yerr=iqr / 2, marker="o", ms=3, capsize=2,
+                    label=f"{name}" + (f" ({label})" if label else ""))
+    ax.set_xlabel("number of correspondences used")
+    ax.set_ylabel("change vs all points (deg)")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return ax

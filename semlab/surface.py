@@ -1,0 +1,445 @@
+"""Surface analysis of reconstructed points: reference plane, heights, errors, profiles, CSV.
+
+Points are ``xyz_um`` : ``(N, 3)`` arrays of ``(x, y, z)`` in µm in the material frame of
+:mod:`semlab.camera` (x, y in the surface plane, z toward the detector). Heights are measured
+vertically from a robust reference plane ``z = a x + b y + c``: positive = extrusion,
+negative = intrusion.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+from tqdm.auto import tqdm
+
+from .errors import GeometryError, SemlabError
+
+__all__ = [
+    "POINTS3D_COLUMNS",
+    "fit_reference_plane",
+    "heights_above_plane",
+    "height_sigma",
+    "bootstrap_heights",
+    "profile_along_line",
+    "height_trend",
+    "write_points3d_csv",
+    "read_points3d_csv",
+]
+
+POINTS3D_COLUMNS = ("point_id", "x_px", "y_px", "x_um", "y_um", "z_um", "z_err_um")
+
+_TUKEY_C = 4.685  # 95 % efficiency at the normal model
+
+
+def _as_xyz(xyz_um, min_points=3):
+    p = np.asarray(xyz_um, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise GeometryError(f"xyz_um must be an (N, 3) array of (x, y, z) µm, got shape {p.shape}")
+    if p.shape[0] < min_points:
+        raise GeometryError(f"need at least {min_points} points, got {p.shape[0]}")
+    if not np.all(np.isfinite(p)):
+        raise GeometryError("xyz_um holds NaN/inf: drop the points that failed to reconstruct")
+    return p
+
+
+def _wls_plane(a, z, w):
+    sw = np.sqrt(w)
+    coef, *_ = np.linalg.lstsq(a * sw[:, None], z * sw, rcond=None)
+    return coef
+
+
+def fit_reference_plane(xyz_um, robust=True, max_iter=100):
+    """Fit the reference plane ``z = a x + b y + c`` of a surface.
+
+    Robust fit (``robust=True``): an L1 fit (iteratively reweighted least squares, weights
+    ``1/|r|``) as a start insensitive to one-sided extrusions, then Tukey-biweight IRLS
+    with scale ``1.4826 · MAD`` of the residuals and ``c = 4.685`` (Huber & Ronchetti,
+    *Robust Statistics*, 2nd ed., §7.8; Holland & Welsch 1977). Points far above or below
+    the surface (extrusions, intrusions, bad matches) get zero weight, so up to roughly
+    40 % of them do not tilt the plane. ``robust=False``: ordinary least squares.
+
+    Parameters
+    ----------
+    xyz_um : (N, 3) array
+        Points ``(x, y, z)`` µm (any common unit works), N >= 3, not collinear in (x, y).
+    robust : bool
+        Robust (default) or least-squares fit.
+    max_iter : int
+        Iterations of each IRLS stage.
+
+    Returns
+    -------
+    plane : (3,) array
+        ``(a, b, c)`` with ``z = a x + b y + c`` (a, b dimensionless slopes).
+
+    Raises
+    ------
+    GeometryError
+        Wrong shape, NaNs, fewer than 3 points, or collinear (x, y).
+    """
+    p = _as_xyz(xyz_um)
+    xy0 = p[:, :2].mean(axis=0)  # centre for conditioning
+    a = np.column_stack([p[:, 0] - xy0[0], p[:, 1] - xy0[1], np.ones(len(p))])
+    sv = np.linalg.svd(a[:, :2], compute_uv=False)
+    if sv[1] <= 1e-9 * max(sv[0], 1e-300):
+        raise GeometryError("the points are collinear in (x, y): a plane needs points spread in 2D")
+    z = p[:, 2]
+    coef = _wls_plane(a, z, np.ones(len(z)))
+    if robust:
+        zscale = np.std(z - a @ coef)
+        if zscale > 0:
+            eps = 1e-6 * zscale
+            for _ in range(min(max_iter, 20)):  # L1 start: only needs to be near
+                r = z - a @ coef
+                new = _wls_plane(a, z, 1.0 / np.maximum(np.abs(r), eps))
+                done = np.abs(new - coef).max() <= 1e-6 * (np.abs(coef).max() + 1e-300)
+                coef = new
+                if done:
+                    break
+            floor = 1e-9 * zscale
+            for _ in range(max_iter):  # Tukey biweight
+                r = z - a @ coef
+                scale = max(1.4826 * np.median(np.abs(r - np.median(r))), floor)
+                t = r / (_TUKEY_C * scale)
+                w = np.where(np.abs(t) < 1, (1 - t ** 2) ** 2, 0.0)
+                if np.count_nonzero(w) < 3:
+                    break
+                new = _wls_plane(a, z, w)
+                done = np.abs(new - coef).max() <= 1e-12 * (np.abs(coef).max() + 1e-300)
+                coef = new
+                if done:
+                    break
+    # back from centred coordinates
+    return np.array([coef[0], coef[1], coef[2] - coef[0] * xy0[0] - coef[1] * xy0[1]])
+
+
+def heights_above_plane(xyz_um, plane):
+    """Vertical height of each point above a plane ``z = a x + b y + c``.
+
+    Parameters
+    ----------
+    xyz_um : (N, 3) array
+        Points ``(x, y, z)`` µm.
+    plane : (3,) array_like
+        ``(a, b, c)`` from :func:`fit_reference_plane`.
+
+    Returns
+    -------
+    z_um : (N,) array
+        ``z - (a x + b y + c)`` µm; positive = extrusion, negative = intrusion.
+    """
+    p = _as_xyz(xyz_um, min_points=1)
+    a, b, c = np.asarray(plane, float).ravel()[:3]
+    return p[:, 2] - (a * p[:, 0] + b * p[:, 1] + c)
+
+
+def height_sigma(sigma_px, tilt_deg, pixel_size_um):
+    """1σ height error propagated from per-point matching σ (first-order, known tilts).
+
+    Each view gives ``u_i = (x cos θ_i + z sin θ_i)/s``, i.e. ``u = A (x, z)`` with
+    ``A = [cos θ_i, sin θ_i]/s``; the weighted least-squares covariance is
+    ``(Aᵀ Σ⁻¹ A)⁻¹`` with ``Σ = diag(σ_i²)`` (H&Z 2nd ed. §5.2). For two views this is::
+
+        σ_z = s sqrt(σ0² cos²θ1 + σ1² cos²θ0) / |sin(θ1 - θ0)|
+
+    i.e. ``s cos θ sqrt(σ0² + σ1²) / sin Δθ`` for a symmetric pair — the parallax σ
+    ``sqrt(σ0² + σ1²)`` turned into height. The per-view offset estimate and the plane
+    fit add an O(1/N) error common to all points, not included.
+
+    Parameters
+    ----------
+    sigma_px : float or array_like
+        1σ error of the x pixel coordinate of the matches: a scalar (all points, all
+        views), ``(N,)`` (per point, same in every view) or ``(N, V)`` / ``(1, V)``.
+    tilt_deg : (V,) array_like
+        Tilts, degrees.
+    pixel_size_um : float
+        Pixel size, µm/px.
+
+    Returns
+    -------
+    float or (N,) array
+        1σ z error in µm (float for a scalar ``sigma_px``).
+    """
+    th = np.deg2rad(np.asarray(tilt_deg, float).ravel())
+    v = th.size
+    if v < 2 or np.ptp(np.sin(th)) < 1e-9:
+        raise GeometryError(f"need at least two different tilts, got {np.rad2deg(th).tolist()}")
+    if pixel_size_um is None or not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
+        raise GeometryError(f"pixel_size_um must be a positive number, got {pixel_size_um!r}")
+    sig = np.asarray(sigma_px, float)
+    scalar = sig.ndim == 0
+    if sig.ndim <= 1:
+        sig = sig.reshape(-1, 1)
+    if sig.ndim != 2 or sig.shape[1] not in (1, v):
+        raise GeometryError(
+            f"sigma_px must be a scalar, (N,) or (N, {v}) pixels, got shape {np.shape(sigma_px)}")
+    if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+        raise GeometryError("sigma_px must be positive and finite")
+    sig = np.broadcast_to(sig, (sig.shape[0], v))
+    s = float(pixel_size_um)
+    c, si = np.cos(th) / s, np.sin(th) / s
+    w = 1.0 / sig ** 2  # (N, V)
+    m00 = w @ (c * c)
+    m01 = w @ (c * si)
+    m11 = w @ (si * si)
+    var_z = m00 / (m00 * m11 - m01 ** 2)
+    out = np.sqrt(var_z)
+    return float(out[0]) if scalar else out
+
+
+def bootstrap_heights(pts, tilt_deg, pixel_size_um, n_boot=200, seed=0, sigma_px=None,
+                      tilt_axis_deg=90.0, progress=True):
+    """Bootstrap 1σ of the height above the reference plane of every point.
+
+    Each resample draws the points with replacement, estimates the per-view offsets and
+    fits the robust reference plane on them, and evaluates the height of *all* points;
+    with ``sigma_px`` the matches are also perturbed by Gaussian noise of that σ (x and y).
+    The per-view offsets only shift all ``(x, z)`` by one constant (see
+    :func:`semlab.reconstruct.heights_from_tilts`), which the plane absorbs exactly, so
+    resampling the plane fit covers the offset estimation too.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        Matches, pixels (point, view, xy).
+    tilt_deg : (V,) array_like
+        Tilts, degrees.
+    pixel_size_um : float
+        Pixel size, µm/px.
+    n_boot : int
+        Number of resamples (>= 2).
+    seed : int
+        Random seed.
+    sigma_px : None, float, (N,) or (N, V) array_like
+        Matching 1σ in pixels to add as noise (None: resample points only).
+    tilt_axis_deg : float
+        See :func:`semlab.reconstruct.heights_from_tilts`.
+    progress : bool
+        tqdm progress bar.
+
+    Returns
+    -------
+    (N,) array
+        Standard deviation of the height of each point over the resamples, µm.
+    """
+    from .reconstruct import heights_from_tilts  # reconstruct imports surface lazily too
+
+    if int(n_boot) < 2:
+        raise GeometryError(f"n_boot must be >= 2, got {n_boot}")
+    base = heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=tilt_axis_deg)
+    p = np.asarray(pts, float)
+    n, v = p.shape[:2]
+    if n < 3:
+        raise GeometryError(f"need at least 3 points for a reference plane, got {n}")
+    noise = None
+    if sigma_px is not None:
+        sig = np.asarray(sigma_px, float)
+        if sig.ndim <= 1:
+            sig = sig.reshape(-1, 1)
+        try:
+            noise = np.broadcast_to(sig, (n, v))[:, :, None]
+        except ValueError:
+            raise GeometryError(
+                f"sigma_px must be a scalar, ({n},) or ({n}, {v}) pixels, got shape "
+                f"{np.shape(sigma_px)}") from None
+    rng = np.random.default_rng(seed)
+    z = np.empty((int(n_boot), n))
+    for k in tqdm(range(int(n_boot)), disable=not progress, desc="height bootstrap"):
+        xyz = base.xyz_um
+        if noise is not None:
+            pb = p + rng.normal(size=p.shape) * noise
+            xyz = heights_from_tilts(pb, tilt_deg, pixel_size_um,
+                                     tilt_axis_deg=tilt_axis_deg).xyz_um
+        idx = rng.integers(0, n, n)
+        try:
+            plane = fit_reference_plane(xyz[idx])
+        except GeometryError:  # a degenerate (collinear) resample
+            z[k] = np.nan
+            continue
+        z[k] = heights_above_plane(xyz, plane)
+    return np.nanstd(z, axis=0, ddof=1)
+
+
+def profile_along_line(xy_um, z_um, p0_um, p1_um, width_um, n_bins=None):
+    """Height profile of the points in a strip along the segment ``p0 → p1``.
+
+    Parameters
+    ----------
+    xy_um : (N, 2) array
+        In-plane positions ``(x, y)`` µm.
+    z_um : (N,) array
+        Heights µm.
+    p0_um, p1_um : (2,) array_like
+        Segment end points ``(x, y)`` µm (e.g. across a crack).
+    width_um : float
+        Full width of the strip: points with ``|offset| <= width_um / 2`` from the line and
+        ``0 <= distance <= |p1 - p0|`` along it are kept.
+    n_bins : int, optional
+        Also return binned statistics over ``[0, |p1 - p0|]``.
+
+    Returns
+    -------
+    dict
+        ``distance_um`` (M,) along the line from ``p0`` (sorted ascending), ``offset_um``
+        (M,) signed distance from the line (positive to the left of ``p0 → p1`` with y
+        down, i.e. toward ``d`` rotated by -90°), ``z_um`` (M,), ``index`` (M,) into the
+        input; with ``n_bins``: ``bin_center_um``, ``bin_mean_um``, ``bin_std_um`` (NaN for
+        empty bins), ``bin_count``.
+    """
+    xy = np.asarray(xy_um, float)
+    z = np.asarray(z_um, float).ravel()
+    if xy.ndim != 2 or xy.shape[1] != 2 or z.shape[0] != xy.shape[0]:
+        raise GeometryError(
+            f"xy_um must be (N, 2) and z_um (N,), got {xy.shape} and {np.shape(z_um)}")
+    p0 = np.asarray(p0_um, float).ravel()
+    p1 = np.asarray(p1_um, float).ravel()
+    if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
+        raise GeometryError("p0_um and p1_um must be finite (x, y) pairs in µm")
+    length = float(np.hypot(*(p1 - p0)))
+    if length == 0:
+        raise GeometryError("p0_um and p1_um are the same point: give a segment of non-zero length")
+    if not np.isfinite(width_um) or width_um <= 0:
+        raise GeometryError(f"width_um must be positive, got {width_um!r}")
+    d = (p1 - p0) / length
+    rel = xy - p0
+    along = rel @ d
+    across = rel[:, 0] * d[1] - rel[:, 1] * d[0]
+    keep = ((along >= 0) & (along <= length) & (np.abs(across) <= width_um / 2)
+            & np.isfinite(z) & np.all(np.isfinite(xy), axis=1))
+    idx = np.nonzero(keep)[0]
+    idx = idx[np.argsort(along[idx], kind="stable")]
+    out = {"distance_um": along[idx], "offset_um": across[idx], "z_um": z[idx], "index": idx}
+    if n_bins is not None:
+        nb = int(n_bins)
+        if nb < 1:
+            raise GeometryError(f"n_bins must be >= 1, got {n_bins}")
+        edges = np.linspace(0.0, length, nb + 1)
+        b = np.clip(np.searchsorted(edges, out["distance_um"], side="right") - 1, 0, nb - 1)
+        cnt = np.bincount(b, minlength=nb)
+        s1 = np.bincount(b, weights=out["z_um"], minlength=nb)
+        s2 = np.bincount(b, weights=out["z_um"] ** 2, minlength=nb)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = s1 / cnt
+            std = np.sqrt(np.maximum(s2 / cnt - mean ** 2, 0.0))
+        out.update(bin_center_um=(edges[:-1] + edges[1:]) / 2, bin_mean_um=mean,
+                   bin_std_um=std, bin_count=cnt)
+    return out
+
+
+def height_trend(xyz_um):
+    """Trend of height with position: robust slopes and correlations.
+
+    Parameters
+    ----------
+    xyz_um : (N, 3) array
+        Points ``(x, y, z)`` µm (z raw, or heights above the plane to look for where the
+        extrusions are, e.g. more extrusion at high y).
+
+    Returns
+    -------
+    dict
+        ``dz_dx``, ``dz_dy`` (µm/µm, from :func:`fit_reference_plane`, robust),
+        ``pearson_r_x``, ``pearson_p_x``, ``pearson_r_y``, ``pearson_p_y``,
+        ``spearman_r_x``, ``spearman_p_x``, ``spearman_r_y``, ``spearman_p_y``, ``n``.
+    """
+    p = _as_xyz(xyz_um, min_points=3)
+    if np.ptp(p[:, 2]) == 0:
+        raise GeometryError("all heights are equal: correlations are undefined")
+    a, b, _ = fit_reference_plane(p)
+    out = {"dz_dx": float(a), "dz_dy": float(b), "n": int(len(p))}
+    for name, col in (("x", 0), ("y", 1)):
+        pr = stats.pearsonr(p[:, col], p[:, 2])
+        sr = stats.spearmanr(p[:, col], p[:, 2])
+        out[f"pearson_r_{name}"] = float(pr[0])
+        out[f"pearson_p_{name}"] = float(pr[1])
+        out[f"spearman_r_{name}"] = float(sr[0])
+        out[f"spearman_p_{name}"] = float(sr[1])
+    return out
+
+
+def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False):
+    """Write ``points3d.csv`` with columns ``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; an existing file is refused unless ``overwrite=True``.
+    point_id : (N,) array_like
+        Unique point identifiers (ints or strings without commas).
+    pts_px : (N, 2) or (N, V, 2) array
+        Pixel ``(x, y)`` of each point in view 0 (view 0 is taken from ``(N, V, 2)``).
+    xyz_um : (N, 3) array
+        ``(x, y, z)`` µm (z usually the height above the reference plane).
+    z_err_um : (N,) array_like or float
+        1σ height error, µm (NaN allowed when unknown).
+
+    Returns
+    -------
+    Path
+        The written path.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise SemlabError(f"{path} already exists: pass overwrite=True or choose another path")
+    ids = np.asarray(point_id).ravel()
+    n = ids.size
+    px = np.asarray(pts_px, float)
+    if px.ndim == 3 and px.shape[2] == 2:
+        px = px[:, 0, :]
+    xyz = np.asarray(xyz_um, float)
+    err = np.broadcast_to(np.asarray(z_err_um, float), (n,)) if np.ndim(z_err_um) == 0 \
+        else np.asarray(z_err_um, float).ravel()
+    if px.shape != (n, 2) or xyz.shape != (n, 3) or err.shape != (n,):
+        raise SemlabError(
+            f"inconsistent lengths: point_id {ids.shape}, pts_px {np.shape(pts_px)}, xyz_um "
+            f"{np.shape(xyz_um)}, z_err_um {np.shape(z_err_um)}; expected N={n} rows each")
+    if len(set(ids.tolist())) != n:
+        raise SemlabError("point_id has duplicates: each point needs a unique id")
+    if any("," in str(i) or "\n" in str(i) for i in ids.tolist()):
+        raise SemlabError("point_id values must not contain commas or newlines")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        wr = csv.writer(fh, lineterminator="\n")
+        wr.writerow(POINTS3D_COLUMNS)
+        for i in range(n):
+            wr.writerow([ids[i], *(f"{val:.10g}" for val in (*px[i], *xyz[i], err[i]))])
+    return path
+
+
+def read_points3d_csv(path):
+    """Read a ``points3d.csv`` written by :func:`write_points3d_csv`.
+
+    Returns
+    -------
+    dict
+        One array per column of :data:`POINTS3D_COLUMNS`; ``point_id`` is int64 when every
+        id is an integer, otherwise str; the others are float (N,).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SemlabError(f"{path} does not exist or is not a file")
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or tuple(h.strip() for h in rows[0]) != POINTS3D_COLUMNS:
+        raise SemlabError(
+            f"{path} is not a points3d.csv: the header must be {','.join(POINTS3D_COLUMNS)}")
+    body = [r for r in rows[1:] if r]
+    if any(len(r) != len(POINTS3D_COLUMNS) for r in body):
+        raise SemlabError(f"{path}: every row needs {len(POINTS3D_COLUMNS)} fields")
+    ids = [r[0] for r in body]
+    try:
+        id_arr = np.array([int(i) for i in ids], dtype=np.int64)
+    except ValueError:
+        id_arr = np.array(ids, dtype=str)
+    try:
+        vals = np.array([[float(x) for x in r[1:]] for r in body], dtype=float).reshape(-1, 6)
+    except ValueError as exc:
+        raise SemlabError(f"{path}: non-numeric value ({exc})") from None
+    out = {"point_id": id_arr}
+    for k, name in enumerate(POINTS3D_COLUMNS[1:]):
+        out[name] = vals[:, k]
+    return out
