@@ -1,0 +1,353 @@
+"""In-plane strain from tracked points or dense displacement fields.
+
+Notation (Malvern, *Introduction to the Mechanics of a Continuous Medium*, 1969, sec. 4.5;
+Holzapfel, *Nonlinear Solid Mechanics*, 2000, sec. 2.5): ``X`` are reference (undeformed)
+positions, ``u(X)`` the displacement, and the displacement gradient is
+``G[..., i, j] = ∂u_i / ∂X_j`` with ``i, j`` over ``(x, y)`` (x right, y down, as image
+points). The deformation gradient is ``F = I + G``.
+
+- small (infinitesimal) strain ``ε = ½ (G + Gᵀ)``;
+- Green-Lagrange strain ``E = ½ (Fᵀ F - I) = ½ (G + Gᵀ + Gᵀ G)``.
+
+Strains are dimensionless; shear components are tensorial (``ε_xy = ½ γ_xy``).
+Points are ``(N, 2)`` arrays of ``(x, y)``; displacements ``(N, 2)`` in the same unit
+(pixels or µm), so the gradient is dimensionless.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import GeometryError, SemlabError
+
+__all__ = [
+    "gradient_from_triangles",
+    "gradient_local_lsq",
+    "gradient_from_field",
+    "small_strain",
+    "green_lagrange",
+    "surface_green_lagrange",
+    "principal_strains",
+    "max_shear",
+    "triangle_areas",
+    "strain_history",
+]
+
+
+def _pts_disp(pts_ref, disp):
+    X = np.asarray(pts_ref, dtype=float)
+    u = np.asarray(disp, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 2:
+        raise GeometryError(f"pts_ref must be an (N, 2) array of (x, y), got shape {X.shape}")
+    if u.shape != X.shape:
+        raise GeometryError(f"disp must have the shape of pts_ref {X.shape}, got {u.shape}")
+    return X, u
+
+
+def triangle_areas(pts, triangles):
+    """(T,) unsigned areas of ``triangles`` (T, 3) of ``pts`` (N, 2)."""
+    P = np.asarray(pts, float)[np.asarray(triangles)]
+    a = P[:, 1] - P[:, 0]
+    b = P[:, 2] - P[:, 0]
+    return 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
+def gradient_from_triangles(pts_ref, disp, min_angle_deg=10.0):
+    """Displacement gradient of constant-strain Delaunay triangles (CST elements).
+
+    Within each triangle the displacement is linear, so ``u(X) = u_0 + G (X - X_0)`` is
+    solved exactly from the three vertices (Zienkiewicz & Taylor, *The Finite Element
+    Method*, vol. 1, ch. 6, the linear triangle). Points with NaN positions or
+    displacements are left out before triangulating (``scipy.spatial.Delaunay``).
+
+    Parameters
+    ----------
+    pts_ref : (N, 2) array of reference positions (x, y)
+    disp : (N, 2) array of displacements (same unit)
+    min_angle_deg : float
+        Triangles whose smallest angle is below this (slivers, whose gradient is
+        ill-conditioned) are dropped.
+
+    Returns
+    -------
+    G : (T, 2, 2) array, ``G[t, i, j] = ∂u_i/∂X_j``
+    triangles : (T, 3) int array of indices into ``pts_ref``
+
+    Raises
+    ------
+    GeometryError
+        Fewer than 3 usable points, all collinear, or no triangle passes the sliver test.
+    """
+    from scipy.spatial import Delaunay
+    from scipy.spatial import QhullError
+
+    X, u = _pts_disp(pts_ref, disp)
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(u).all(axis=1)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 3:
+        raise GeometryError(f"{len(idx)} usable points (finite position and displacement); "
+                            "triangles need at least 3")
+    try:
+        tri = Delaunay(X[idx])
+    except QhullError as exc:
+        raise GeometryError("the points are collinear or duplicated: no triangulation "
+                            f"possible ({str(exc).splitlines()[0]})") from None
+    T = idx[tri.simplices]
+    P = X[T]                                                    # (T, 3, 2)
+    # smallest interior angle
+    ang = []
+    for i in range(3):
+        a = P[:, (i + 1) % 3] - P[:, i]
+        b = P[:, (i + 2) % 3] - P[:, i]
+        c = np.einsum("ti,ti->t", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+        ang.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
+    keep = np.min(ang, axis=0) >= float(min_angle_deg)
+    if not keep.any():
+        raise GeometryError(f"all {len(T)} triangles are slivers (smallest angle < "
+                            f"{min_angle_deg}°): lower min_angle_deg or use more points")
+    T = T[keep]
+    P = X[T]
+    U = u[T]
+    dX = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], axis=2)     # (T, 2, 2) columns
+    dU = np.stack([U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]], axis=2)
+    G = dU @ np.linalg.inv(dX)
+    return G, T
+
+
+def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
+    """Displacement gradient at each point from a local least-squares affine fit.
+
+    At each point the neighbours within a disc of diameter ``gauge_length`` (radius
+    ``gauge_length / 2``, the point itself included) are fitted by
+    ``u(X) = a + G (X - X_i)`` in the least-squares sense; this is the "virtual strain
+    gauge" of point-wise DIC strain estimation (Pan et al., Opt. Eng. 46 (2007) 033601).
+
+    Parameters
+    ----------
+    pts_ref : (N, 2) array of reference positions (x, y)
+    disp : (N, 2) array of displacements (same unit)
+    gauge_length : float
+        Diameter of the fitting disc, in the unit of ``pts_ref``.
+    min_neighbours : int
+        Fewest points (including the point itself) in the disc; below it (or when the
+        neighbours are collinear) the gradient is NaN.
+
+    Returns
+    -------
+    (N, 2, 2) array, NaN where not enough neighbours.
+    """
+    from scipy.spatial import cKDTree
+
+    X, u = _pts_disp(pts_ref, disp)
+    if not np.isfinite(gauge_length) or gauge_length <= 0:
+        raise GeometryError(f"gauge_length must be > 0, got {gauge_length!r}")
+    if min_neighbours < 3:
+        raise GeometryError(f"min_neighbours must be >= 3 for an affine fit, got {min_neighbours}")
+    n = len(X)
+    G = np.full((n, 2, 2), np.nan)
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(u).all(axis=1)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return G
+    tree = cKDTree(X[idx])
+    nbrs = tree.query_ball_point(X[idx], r=0.5 * float(gauge_length))
+    for a, nb in zip(idx, nbrs):
+        if len(nb) < min_neighbours:
+            continue
+        j = idx[np.asarray(nb)]
+        D = X[j] - X[a]
+        A = np.column_stack([np.ones(len(j)), D])                 # (m, 3)
+        if np.linalg.matrix_rank(A) < 3:
+            continue
+        coef, *_ = np.linalg.lstsq(A, u[j], rcond=None)           # (3, 2)
+        G[a] = coef[1:].T
+    return G
+
+
+def gradient_from_field(ux, uy, spacing_um):
+    """Displacement gradient of dense fields by central differences (``np.gradient``).
+
+    Parameters
+    ----------
+    ux, uy : (H, W) arrays
+        Displacement components on a regular grid (rows = y, columns = x), in µm.
+    spacing_um : float or (2,) sequence
+        Grid spacing (dx, dy) in µm (a float for both).
+
+    Returns
+    -------
+    (H, W, 2, 2) array ``G[r, c, i, j] = ∂u_i/∂X_j``.
+    """
+    ux = np.asarray(ux, float)
+    uy = np.asarray(uy, float)
+    if ux.ndim != 2 or ux.shape != uy.shape:
+        raise SemlabError(f"ux and uy must be 2D arrays of the same shape, got {ux.shape} and {uy.shape}")
+    if min(ux.shape) < 2:
+        raise SemlabError(f"fields of shape {ux.shape} are too small for a gradient (need >= 2x2)")
+    sp = np.broadcast_to(np.asarray(spacing_um, float), (2,))
+    if not (np.isfinite(sp).all() and (sp > 0).all()):
+        raise SemlabError(f"spacing_um must be positive, got {spacing_um!r}")
+    dx, dy = sp
+    duxdy, duxdx = np.gradient(ux, dy, dx)
+    duydy, duydx = np.gradient(uy, dy, dx)
+    G = np.empty(ux.shape + (2, 2))
+    G[..., 0, 0] = duxdx
+    G[..., 0, 1] = duxdy
+    G[..., 1, 0] = duydx
+    G[..., 1, 1] = duydy
+    return G
+
+
+def _check_G(G, d=2):
+    G = np.asarray(G, float)
+    if G.shape[-2:] != (d, d):
+        raise SemlabError(f"expected (..., {d}, {d}) gradients, got shape {G.shape}")
+    return G
+
+
+def small_strain(G):
+    """Infinitesimal strain ``ε = ½ (G + Gᵀ)`` of (..., 2, 2) gradients (Malvern eq. 4.5.6)."""
+    G = _check_G(G)
+    return 0.5 * (G + np.swapaxes(G, -1, -2))
+
+
+def green_lagrange(G):
+    """Green-Lagrange strain ``E = ½ (G + Gᵀ + Gᵀ G)`` (Holzapfel eq. 2.69) of (..., 2, 2)."""
+    G = _check_G(G)
+    Gt = np.swapaxes(G, -1, -2)
+    return 0.5 * (G + Gt + Gt @ G)
+
+
+def surface_green_lagrange(G_inplane, grad_uz):
+    """Green-Lagrange strain of the surface including the out-of-plane displacement.
+
+    ``E_ij = ½ (∂u_i/∂X_j + ∂u_j/∂X_i + Σ_k ∂u_k/∂X_i ∂u_k/∂X_j)``, i, j ∈ {x, y},
+    k ∈ {x, y, z}: the in-plane Green-Lagrange strain plus ``½ ∇u_z ⊗ ∇u_z`` (the metric
+    change of a surface that also moves out of plane; cf. von Kármán plate kinematics).
+
+    Parameters
+    ----------
+    G_inplane : (..., 2, 2) array
+        In-plane gradient ``∂u_i/∂X_j``.
+    grad_uz : (..., 2) array
+        ``(∂u_z/∂X, ∂u_z/∂Y)`` (e.g. from the change of height between two states).
+
+    Returns
+    -------
+    (..., 2, 2) array.
+    """
+    G = _check_G(G_inplane)
+    g = np.asarray(grad_uz, float)
+    if g.shape != G.shape[:-1]:
+        raise SemlabError(f"grad_uz must have shape {G.shape[:-1]} to match G_inplane {G.shape}, "
+                          f"got {g.shape}")
+    return green_lagrange(G) + 0.5 * g[..., :, None] * g[..., None, :]
+
+
+def principal_strains(E):
+    """Principal strains and direction of (..., 2, 2) symmetric strain tensors.
+
+    Returns
+    -------
+    e1, e2 : arrays (...,), ``e1 >= e2``
+    angle_deg : array (...,)
+        Angle of the ``e1`` direction from the +x axis, degrees in (-90, 90], measured
+        toward +y (image y is down, so positive angles turn clockwise on screen).
+    """
+    E = _check_G(E)
+    exx, eyy = E[..., 0, 0], E[..., 1, 1]
+    exy = 0.5 * (E[..., 0, 1] + E[..., 1, 0])
+    c = 0.5 * (exx + eyy)
+    r = np.sqrt((0.5 * (exx - eyy)) ** 2 + exy ** 2)
+    ang = 0.5 * np.degrees(np.arctan2(2 * exy, exx - eyy))
+    ang = np.where(ang <= -90, ang + 180, ang)
+    return c + r, c - r, ang
+
+
+def max_shear(E):
+    """Maximum (tensorial) in-plane shear strain ``(e1 - e2) / 2``; the engineering value is twice it."""
+    e1, e2, _ = principal_strains(E)
+    return 0.5 * (e1 - e2)
+
+
+def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_size_um=None,
+                   method="triangles", measure="green_lagrange", gauge_length=None,
+                   min_points=3):
+    """Mean in-plane strain of the tracked area in every frame (a strain-vs-cycles curve).
+
+    The reference configuration is frame ``ref_frame`` (default the earliest, 0). In each
+    frame the displacement ``u = x_f - x_ref`` of the points valid in both frames gives a
+    gradient field whose mean is taken (the strain reported is that of the mean gradient):
+    area-weighted over the CST triangles (for linear
+    elements this equals the boundary average of the displacement, i.e. the mean gradient
+    of the region) or the plain mean of the local least-squares gradients.
+
+    Parameters
+    ----------
+    tracks_xy_per_frame : (F, N, 2) array of (x, y) pixels (``Tracks.xy``)
+    cycles : (F,) array
+        Load cycles at each frame.
+    valid : (F, N) bool array, optional
+        Step validity (``Tracks.valid``); default: finite positions.
+    ref_frame : int
+    pixel_size_um : float, optional
+        Only scales positions; strains are dimensionless either way.
+    method : {"triangles", "lsq"}
+    measure : {"green_lagrange", "small"}
+    gauge_length : float, optional
+        Gauge diameter (pixels) for ``method="lsq"`` (required there).
+    min_points : int
+        Frames with fewer common valid points get NaN.
+
+    Returns
+    -------
+    dict of (F,) arrays: ``cycles``, ``exx``, ``eyy``, ``exy``, ``e1``, ``e2``,
+    ``angle_deg`` (of the mean tensor), ``n_points``.
+    """
+    xy = np.asarray(tracks_xy_per_frame, float)
+    if xy.ndim != 3 or xy.shape[2] != 2:
+        raise SemlabError(f"tracks_xy_per_frame must be (F, N, 2), got shape {xy.shape}")
+    F, N, _ = xy.shape
+    cyc = np.asarray(cycles, float)
+    if cyc.shape != (F,):
+        raise SemlabError(f"cycles must have one value per frame ({F}), got shape {cyc.shape}")
+    if method not in ("triangles", "lsq"):
+        raise SemlabError(f"method must be 'triangles' or 'lsq', got {method!r}")
+    if measure not in ("green_lagrange", "small"):
+        raise SemlabError(f"measure must be 'green_lagrange' or 'small', got {measure!r}")
+    if method == "lsq" and gauge_length is None:
+        raise SemlabError("method='lsq' needs gauge_length (pixels)")
+    ok = np.isfinite(xy).all(axis=2)
+    if valid is not None:
+        v = np.asarray(valid, bool)
+        if v.shape != (F, N):
+            raise SemlabError(f"valid must have shape {(F, N)}, got {v.shape}")
+        ok &= v
+    r = int(ref_frame) % F
+    s = 1.0 if pixel_size_um is None else float(pixel_size_um)
+    strain_fn = green_lagrange if measure == "green_lagrange" else small_strain
+    out = {k: np.full(F, np.nan) for k in ("exx", "eyy", "exy", "e1", "e2", "angle_deg")}
+    out["n_points"] = np.zeros(F, int)
+    for f in range(F):
+        use = ok[f] & ok[r]
+        out["n_points"][f] = int(use.sum())
+        if use.sum() < max(3, min_points):
+            continue
+        X = xy[r, use] * s
+        u = (xy[f, use] - xy[r, use]) * s
+        try:
+            if method == "triangles":
+                G, T = gradient_from_triangles(X, u)
+                w = triangle_areas(X, T)
+                Gm = (G * w[:, None, None]).sum(axis=0) / w.sum()
+            else:
+                G = gradient_local_lsq(X, u, gauge_length * s)
+                Gm = np.nanmean(G, axis=0) if np.isfinite(G).any() else np.full((2, 2), np.nan)
+        except GeometryError:
+            continue
+        E = strain_fn(Gm)
+        e1, e2, a = principal_strains(E)
+        out["exx"][f], out["eyy"][f], out["exy"][f] = E[0, 0], E[1, 1], E[0, 1]
+        out["e1"][f], out["e2"][f], out["angle_deg"][f] = e1, e2, a
+    out["cycles"] = cyc
+    return out

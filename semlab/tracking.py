@@ -1,0 +1,891 @@
+"""Reverse-time point tracking on a frontal SEM image series.
+
+During a fatigue test a fixed frontal view is taken every N cycles; frames are chronological
+(frame 0 = earliest). Features are well defined only at the end of the test, so points are
+seeded in the LAST frame (the reference) and followed BACKWARDS in time to frame 0.
+Results are always stored by chronological frame index ``0 .. F-1``, never reversed.
+
+Every step of every track carries a reliability flag (forward-backward error, LK status,
+ZNCC against the reference); a track never jumps silently.
+
+Conventions: images are indexed ``[row, col]``; points are ``(N, 2)`` arrays of ``(x, y)`` in
+pixels, x to the right, y down, origin at the centre of the top-left pixel (OpenCV).
+
+References
+----------
+- J.-Y. Bouguet, "Pyramidal implementation of the affine Lucas Kanade feature tracker",
+  Intel Corp. (2001) -- ``cv2.calcOpticalFlowPyrLK``.
+- Z. Kalal, K. Mikolajczyk, J. Matas, "Forward-backward error: automatic detection of
+  tracking failures", ICPR 2010.
+- J. Shi, C. Tomasi, "Good features to track", CVPR 1994.
+- D. G. Lowe, "Distinctive image features from scale-invariant keypoints", IJCV 60 (2004)
+  (SIFT and the ratio test).
+- B. Pan, K. Li, W. Tong, "Fast, robust and accurate digital image correlation calculation
+  without redundant computations", Exp. Mech. 53 (2013) (ZNCC, IC-GN).
+"""
+
+from __future__ import annotations
+
+import csv
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import GeometryError, SemlabError, TrackingError
+
+__all__ = [
+    "Tracks",
+    "TrackingWarning",
+    "normalize_frame",
+    "match_sigma_px",
+    "median_outliers",
+    "shi_tomasi_seeds",
+    "track_reverse",
+    "register_points",
+    "tracks_to_records",
+    "write_tracks_csv",
+    "displacements",
+    "displacement_history",
+    "TRACKS_CSV_COLUMNS",
+]
+
+TRACKS_CSV_COLUMNS = ("track_id", "seed", "frame", "x_px", "y_px", "fb_error_px", "valid")
+
+#: A frame whose robust intensity range (0.5-99.5 percentile) is below this fraction of its
+#: absolute level (or exactly zero) is treated as blank.
+_BLANK_REL_RANGE = 1e-6
+
+
+class TrackingWarning(UserWarning):
+    """Tracks were lost or a frame could not be used; the message names the frame."""
+
+
+@dataclass
+class Tracks:
+    """Result of :func:`track_reverse`; every array is indexed by chronological frame.
+
+    Attributes
+    ----------
+    xy : (F, N, 2) float array
+        Position ``(x, y)`` in pixels of each track in each frame. Holds the best estimate
+        whenever a match was computed, also for steps flagged invalid; NaN where no estimate
+        exists (LK failure, point left the image, blank frame). Use ``valid`` to select.
+    fb_error_px : (F, N) float array
+        Forward-backward error of the step, pixels (0 in the reference frame, NaN when not
+        computed).
+    valid : (F, N) bool array
+        True where the step passed every check (LK status, fb error, ZNCC).
+    zncc : (F, N) float array
+        Zero-normalised cross-correlation between the window at the track position in the
+        frame and the window at the seed in the reference frame.
+    sigma_px : (F, N) float array
+        Predicted 1-sigma position uncertainty of the step, pixels (see
+        :func:`match_sigma_px`); 0 in the reference frame.
+    gap_frames : (F, N) int array
+        Number of suspended (invalid) frames bridged by the step: 0 for a step from the
+        next-later frame, k > 0 for a track re-acquired after k invalid frames. Re-acquired
+        steps are where a look-alike feature is most likely to be matched instead; treat
+        large gaps with suspicion.
+    seed_kind : (N,) array of str
+        Caller's label of each seed (e.g. ``"shi_tomasi"``, ``"stereo"``, ``"click"``).
+    reference_frame : int
+        Index of the reference (seed) frame, ``F - 1``.
+    method : str
+        ``"lk"`` or ``"subset"``.
+    """
+
+    xy: np.ndarray
+    fb_error_px: np.ndarray
+    valid: np.ndarray
+    zncc: np.ndarray
+    sigma_px: np.ndarray
+    gap_frames: np.ndarray
+    seed_kind: np.ndarray
+    reference_frame: int
+    method: str = "lk"
+    params: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return self.xy.shape[0]
+
+    @property
+    def n_tracks(self) -> int:
+        return self.xy.shape[1]
+
+    def valid_fraction(self):
+        """(F,) fraction of tracks valid in each frame."""
+        return self.valid.mean(axis=1) if self.n_tracks else np.zeros(self.n_frames)
+
+
+# ----------------------------------------------------------------------------- images
+
+def _as_2d(img, what):
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = a[..., :3].astype(np.float64).mean(axis=2)
+    if a.ndim != 2:
+        raise TrackingError(f"{what} must be a 2D image [row, col], got an array of shape {a.shape}")
+    if a.shape[0] < 8 or a.shape[1] < 8:
+        raise TrackingError(f"{what} is too small ({a.shape}); tracking needs images of at least 8x8 pixels")
+    return a
+
+
+def normalize_frame(img, low_pct=0.5, high_pct=99.5):
+    """Robust contrast stretch of one frame to ``[0, 1]``.
+
+    Intensities between the ``low_pct`` and ``high_pct`` percentiles are mapped linearly to
+    ``[0, 1]`` and clipped, so that global brightness and contrast changes between frames
+    do not matter for matching.
+
+    Parameters
+    ----------
+    img : (H, W) array, any real dtype
+    low_pct, high_pct : float
+        Percentiles of the stretch.
+
+    Returns
+    -------
+    out : (H, W) float32 array in ``[0, 1]``
+    blank : bool
+        True when the frame has no usable contrast (constant or NaN); ``out`` is then zeros.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    finite = np.isfinite(a)
+    if not finite.any():
+        return np.zeros(a.shape, np.float32), True
+    lo, hi = np.percentile(a[finite], [low_pct, high_pct])
+    scale = max(abs(lo), abs(hi), 1e-300)
+    if not np.isfinite(hi - lo) or (hi - lo) <= _BLANK_REL_RANGE * scale:
+        return np.zeros(a.shape, np.float32), True
+    out = (np.where(finite, a, lo) - lo) / (hi - lo)
+    return np.clip(out, 0.0, 1.0).astype(np.float32), False
+
+
+def _to_u8(f01):
+    return np.round(f01 * 255.0).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------- seeds
+
+def shi_tomasi_seeds(img, quality=0.35, min_distance=7, block_size=7, max_corners=2000,
+                     mask=None, border_px=11, name="the image"):
+    """Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) as track seeds.
+
+    The defaults are the reference paper's settings. The image is contrast-stretched first
+    (:func:`normalize_frame`), so its dtype and brightness do not matter.
+
+    Parameters
+    ----------
+    img : (H, W) array
+        Usually the last frame of the series (the tracking reference).
+    quality : float
+        Minimal accepted corner quality relative to the best corner, in ``(0, 1]``.
+    min_distance : float
+        Minimal distance between corners, pixels.
+    block_size : int
+        Size of the averaging block of the structure tensor, pixels.
+    max_corners : int
+        At most this many corners, strongest first.
+    mask : (H, W) bool/uint8 array, optional
+        Non-zero where corners may be found.
+    border_px : float
+        Drop corners closer than this to the image edge, pixels (default 11: the tracking
+        window of :func:`track_reverse`, 21 px, must fit in the image to be verified).
+    name : str
+        How to call the image in error messages (e.g. ``"frame 11"``).
+
+    Returns
+    -------
+    (N, 2) float array of (x, y) in pixels, N >= 1.
+
+    Raises
+    ------
+    TrackingError
+        Blank image or no corner found: an empty seed set is never returned silently.
+    """
+    a = _as_2d(img, name)
+    f01, blank = normalize_frame(a)
+    if blank:
+        raise TrackingError(f"{name} is blank (no contrast): no Shi-Tomasi seeds can be found; "
+                            "seed on the last, best-contrast frame of the series")
+    if not 0 < quality <= 1:
+        raise TrackingError(f"quality must be in (0, 1], got {quality!r}")
+    m = None
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != a.shape:
+            raise TrackingError(f"mask shape {m.shape} differs from {name} shape {a.shape}")
+        m = (m != 0).astype(np.uint8)
+    c = cv2.goodFeaturesToTrack(f01, maxCorners=int(max_corners), qualityLevel=float(quality),
+                                minDistance=float(min_distance), mask=m, blockSize=int(block_size))
+    pts = np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(np.float64)
+    b = float(border_px)
+    h, w = a.shape
+    keep = ((pts[:, 0] >= b) & (pts[:, 0] <= w - 1 - b) & (pts[:, 1] >= b) & (pts[:, 1] <= h - 1 - b))
+    pts = pts[keep]
+    if len(pts) == 0:
+        raise TrackingError(f"no Shi-Tomasi corners found in {name} (featureless, or all within "
+                            f"{b:g} px of the edge): lower quality (now {quality}) or min_distance, "
+                            "or seed on a frame with more texture")
+    return pts
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _patch_grid(half):
+    r = np.arange(-half, half + 1, dtype=np.float32)
+    gx, gy = np.meshgrid(r, r)
+    return gx, gy
+
+
+def _sample_patches(img01, pts, half):
+    """(N, 2h+1, 2h+1) bilinear samples of ``img01`` around ``pts`` (NaN outside)."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    gx, gy = _patch_grid(half)
+    n = len(pts)
+    w = 2 * half + 1
+    out = np.empty((n, w, w), np.float32)
+    chunk = max(1, 30000 // w)            # cv2.remap needs fewer than 32767 rows
+    for i in range(0, n, chunk):
+        p = pts[i:i + chunk]
+        m = len(p)
+        # map relative to the integer pixel so float32 keeps the sub-pixel part exactly
+        ix = np.floor(np.nan_to_num(p, nan=-1e6))
+        fx = (np.nan_to_num(p, nan=-1e6) - ix).astype(np.float32)
+        mx = (ix[:, 0, None, None].astype(np.float32) + fx[:, 0, None, None] + gx[None]).reshape(m * w, w)
+        my = (ix[:, 1, None, None].astype(np.float32) + fx[:, 1, None, None] + gy[None]).reshape(m * w, w)
+        out[i:i + m] = cv2.remap(img01, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=float("nan")).reshape(m, w, w)
+    return out
+
+
+def _zncc(p, q):
+    """ZNCC of matching patch stacks (N, w, w); NaN if a patch is flat or leaves the image."""
+    p = p.reshape(len(p), -1).astype(np.float64)
+    q = q.reshape(len(q), -1).astype(np.float64)
+    p = p - p.mean(axis=1, keepdims=True)
+    q = q - q.mean(axis=1, keepdims=True)
+    den = np.sqrt((p * p).sum(axis=1) * (q * q).sum(axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = (p * q).sum(axis=1) / den
+    z[~(den > 1e-12)] = np.nan
+    return z
+
+
+def _min_gradient_energy(ref01, seeds, half):
+    """Smallest eigenvalue of the structure tensor of each unit-variance reference window.
+
+    ``λ_min(Σ ∇P̂ ∇P̂ᵀ)`` over the window, with ``P̂`` the window scaled to zero mean and unit
+    variance (the sum of squared subset intensity gradients of Pan et al., Meas. Sci. Technol.
+    19 (2008) 105503, taken in its weakest direction).
+    """
+    P = _sample_patches(ref01, seeds, half + 1).astype(np.float64)
+    gy, gx = np.gradient(P, axis=(1, 2))
+    core = P[:, 1:-1, 1:-1].reshape(len(P), -1)
+    sd = core.std(axis=1)
+    sd[~(sd > 1e-12)] = np.nan
+    gx = gx[:, 1:-1, 1:-1] / sd[:, None, None]
+    gy = gy[:, 1:-1, 1:-1] / sd[:, None, None]
+    a = (gx * gx).sum(axis=(1, 2))
+    b = (gx * gy).sum(axis=(1, 2))
+    c = (gy * gy).sum(axis=(1, 2))
+    return 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+
+
+def match_sigma_px(zncc, lambda_min):
+    """Predicted 1-sigma error of a window match, pixels.
+
+    A window match is a least-squares fit; its covariance is ``σ² (JᵀJ)⁻¹`` with ``J`` the
+    window intensity gradients (Gauss-Newton covariance, Nocedal & Wright 2nd ed. sec. 10.3).
+    For unit-variance windows with correlation ``ρ`` (ZNCC) the signal part of the current
+    window has gain ``ρ`` and the noise variance ``1 - ρ²``, so in the weakest direction::
+
+        σ² = (1 - ρ²) / (ρ² λ_min)
+
+    Parameters
+    ----------
+    zncc : array
+        ZNCC of the match.
+    lambda_min : array
+        From the structure tensor of the unit-variance reference window.
+
+    Returns
+    -------
+    array of σ in pixels (inf where ``zncc <= 0`` or the window is flat).
+    """
+    z = np.asarray(zncc, float)
+    lam = np.asarray(lambda_min, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = (1.0 - np.clip(z, -1, 1) ** 2) / (np.clip(z, 0, 1) ** 2 * lam)
+    s2 = np.where(np.isfinite(s2) & (z > 0) & (lam > 0), s2, np.inf)
+    return np.sqrt(np.maximum(s2, 0.0))
+
+
+def median_outliers(pts_ref, disp, candidates, threshold=2.0, n_neighbours=8, eps_px=0.1,
+                    neighbours=None):
+    """Normalised median test of a scattered displacement field.
+
+    Westerweel & Scarano, "Universal outlier detection for PIV data", Exp. Fluids 39 (2005)
+    1096-1100: with ``u_m`` the median displacement of the ``n_neighbours`` nearest
+    neighbours and ``r_m`` the median of their own deviations from ``u_m``, a point is an
+    outlier when ``|u - u_m| / (r_m + eps_px) > threshold``.
+
+    Parameters
+    ----------
+    pts_ref : (N, 2) array of (x, y) pixels (neighbourhoods are taken here)
+    disp : (N, 2) array of displacements, pixels
+    candidates : (N,) bool
+        Points to test.
+    neighbours : (N,) bool, optional
+        Points that may serve as neighbours (default: every point with a finite
+        displacement).
+
+    Returns
+    -------
+    (N,) bool, True for candidates that fail the test. With fewer than
+    ``n_neighbours + 1`` usable neighbours no point is flagged.
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(pts_ref), bool)
+    fin = np.isfinite(disp).all(axis=1)
+    nbr = fin if neighbours is None else (np.asarray(neighbours, bool) & fin)
+    idx = np.flatnonzero(np.asarray(candidates, bool) & fin)
+    jdx = np.flatnonzero(nbr)
+    if len(jdx) < n_neighbours + 1 or len(idx) == 0:
+        return out
+    tree = cKDTree(pts_ref[jdx])
+    dist, nb = tree.query(pts_ref[idx], k=n_neighbours + 1)
+    # drop the point itself where it is among its neighbours, else the farthest one
+    self_hit = jdx[nb[:, 0]] == idx
+    nb = np.where(self_hit[:, None], nb[:, 1:], nb[:, :-1])
+    d = disp[idx]
+    dn = disp[jdx][nb]                                 # (M, k, 2)
+    um = np.median(dn, axis=1)                         # (M, 2)
+    rm = np.median(np.linalg.norm(dn - um[:, None, :], axis=2), axis=1)
+    r = np.linalg.norm(d - um, axis=1) / (rm + eps_px)
+    out[idx] = r > threshold
+    return out
+
+
+def _inside(pts, shape):
+    h, w = shape
+    return (np.isfinite(pts).all(axis=1) & (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1)
+            & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1))
+
+
+def _lk(prev_u8, next_u8, p0, guess, lk_kw):
+    """LK from prev to next; returns (pts (N,2) with NaN where failed, ok (N,) bool)."""
+    n = len(p0)
+    out = np.full((n, 2), np.nan)
+    ok = np.zeros(n, bool)
+    good = np.isfinite(p0).all(axis=1)
+    if guess is not None:
+        good &= np.isfinite(guess).all(axis=1)
+    if not good.any():
+        return out, ok
+    a = p0[good].astype(np.float32).reshape(-1, 1, 2)
+    if guess is not None:
+        g = guess[good].astype(np.float32).reshape(-1, 1, 2).copy()
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(prev_u8, next_u8, a, g,
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk_kw)
+    else:
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(prev_u8, next_u8, a, None, **lk_kw)
+    p1 = p1.reshape(-1, 2).astype(np.float64)
+    st = st.reshape(-1).astype(bool) & np.isfinite(p1).all(axis=1)
+    idx = np.flatnonzero(good)
+    out[idx[st]] = p1[st]
+    ok[idx] = st
+    ok &= _inside(np.where(np.isfinite(out), out, -1.0), next_u8.shape)
+    out[~ok] = np.nan
+    return out, ok
+
+
+# ----------------------------------------------------------------------------- tracking
+
+def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_threshold_px=0.5,
+                  min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
+                  max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
+                  max_jump_px=None, subset_half_window=None):
+    """Track points seeded in the last frame backwards in time to frame 0.
+
+    Algorithm (for each frame ``k = F-2, F-3, ..., 0``):
+
+    1. **Chained step.** Each track is matched by pyramidal Lucas-Kanade (Bouguet 2001) from
+       its *source* frame -- the most recent (in processing order) frame where it was valid,
+       normally ``k + 1`` -- into frame ``k``.
+    2. **Direct-to-reference correction** (``direct_correction=True``). The seed window in the
+       reference (last) frame is matched directly into frame ``k``, starting from the chained
+       position, so errors do not accumulate along the chain. With ``method="subset"`` this
+       match is an IC-GN subset refinement (:func:`semlab.subset.icgn_refine`, affine warp)
+       instead of LK.
+    3. **Forward-backward check** (Kalal et al. 2010). The final position is matched back into
+       the frame it was matched from (the reference with direct correction, else the source
+       frame); ``fb_error_px`` is the distance between the point reached and the start point.
+    4. **ZNCC check.** ZNCC between the window at the track position in frame ``k`` and the
+       seed window in the reference frame (images contrast-stretched per frame).
+    5. **Predicted uncertainty.** ``sigma_px`` from the ZNCC and the gradient energy of the
+       reference window (:func:`match_sigma_px`).
+    6. **No jump.** The position may not lie more than ``max_jump_px`` from the track's last
+       valid position (also across suspended frames), so a track re-acquired after a gap
+       cannot lock onto a look-alike feature far away.
+    7. **Neighbour consistency.** Normalised median test of the displacement (from the
+       reference) against the ``n_neighbours`` nearest tracks (:func:`median_outliers`,
+       Westerweel & Scarano 2005), which catches isolated jumps.
+
+    A step is **valid** when the match succeeded (LK status ok / IC-GN converged, inside the
+    image), ``fb_error_px <= fb_threshold_px``, ``zncc >= min_zncc``,
+    ``sigma_px <= max_sigma_px``, it moved at most ``max_jump_px`` and it passes the median
+    test (each check can be disabled by passing None, except the jump bound).
+
+    The forward-backward error alone does not bound the position error in noisy frames
+    (both directions see the same noise), hence checks 5-6. On a synthetic series with
+    white noise, real errors have heavy tails (up to ~8 sigma_px at signal-to-noise ~1.5,
+    partly the noise-induced interpolation bias of sub-pixel matching), which is why the
+    default ``max_sigma_px`` is a tenth of the 0.5 px error budget. The translation-only LK
+    window is also biased by strain between the frame and the reference (about
+    ``strain x win_size / 4`` px); use ``method="subset"`` (affine subsets) where strains
+    exceed ~2 %.
+
+    Policy for invalid steps: an invalid step *suspends* the track. Its estimate is stored in
+    ``xy`` (flagged invalid) but is never used to continue: at each earlier frame the track is
+    re-attempted from its last valid frame and position (the chained LK skips the bad
+    frames). It stays invalid until a step passes every check again, and then it is valid
+    from that frame on. Hence ``valid[k]`` never depends on an unverified position.
+
+    Parameters
+    ----------
+    frames : sequence of F >= 2 (H, W) arrays, chronological (frame 0 = earliest)
+        Any real dtype; each frame is contrast-stretched (:func:`normalize_frame`).
+    seeds : (N, 2) array of (x, y) pixels in the last frame
+    method : {"lk", "subset"}
+        Matcher of the direct-to-reference step (``"subset"`` needs ``direct_correction``).
+    win_size : int
+        LK window size (pixels, odd) and ZNCC window size.
+    max_level : int
+        Number of LK pyramid levels above the full image.
+    fb_threshold_px : float
+        Largest forward-backward error of a valid step, pixels.
+    min_zncc : float or None
+        Smallest ZNCC of a valid step; None to skip this check (ZNCC is still reported).
+    direct_correction : bool
+        Re-match every frame directly against the reference (recommended).
+    progress : bool
+        Show a tqdm progress bar over frames.
+    seed_kind : str or (N,) sequence of str, optional
+        Label(s) stored in ``Tracks.seed_kind`` (default ``"seed"``).
+    max_sigma_px : float or None
+        Largest predicted 1-sigma error of a valid step, pixels.
+    outlier_threshold : float or None
+        Threshold of the normalised median test (2 is Westerweel & Scarano's value).
+    n_neighbours : int
+        Neighbours of the median test.
+    max_jump_px : float, optional
+        Largest distance between a valid step and the track's last valid position, pixels
+        (default ``win_size``; raise it for series with large motion between frames).
+    subset_half_window : int, optional
+        IC-GN subset half size for ``method="subset"`` (default ``win_size // 2``).
+
+    Returns
+    -------
+    Tracks
+
+    Raises
+    ------
+    TrackingError
+        Fewer than 2 frames, frames of different sizes, a blank reference frame, no seeds,
+        seeds outside the reference frame, bad parameters, or not a single valid step in the
+        whole series. Frames where every track is invalid give a :class:`TrackingWarning`
+        naming them.
+    """
+    if method not in ("lk", "subset"):
+        raise TrackingError(f"method must be 'lk' or 'subset', got {method!r}")
+    if method == "subset" and not direct_correction:
+        raise TrackingError("method='subset' matches each frame against the reference: "
+                            "use direct_correction=True")
+    frames = list(frames) if not isinstance(frames, np.ndarray) or frames.ndim == 3 else [frames]
+    if len(frames) < 2:
+        raise TrackingError(f"tracking needs at least 2 frames, got {len(frames)}; pass the whole "
+                            "series, chronological (frame 0 = earliest)")
+    shape0 = None
+    for i, fr in enumerate(frames):
+        a = _as_2d(fr, f"frame {i}")
+        if shape0 is None:
+            shape0 = a.shape
+        elif a.shape != shape0:
+            raise TrackingError(f"frame {i} has shape {a.shape} but frame 0 has {shape0}: all frames "
+                                "of a series must have the same size (crop them identically)")
+    seeds = np.asarray(seeds, dtype=np.float64)
+    if seeds.ndim != 2 or seeds.shape[1] != 2:
+        raise TrackingError(f"seeds must be an (N, 2) array of (x, y) pixels, got shape {seeds.shape}")
+    if len(seeds) == 0:
+        raise TrackingError("no seeds to track: pass at least one (x, y) point of the last frame "
+                            "(e.g. from shi_tomasi_seeds(frames[-1]))")
+    if not np.isfinite(seeds).all():
+        raise TrackingError("seeds contain NaN/inf: remove them before tracking")
+    if not _inside(seeds, shape0).all():
+        bad = np.flatnonzero(~_inside(seeds, shape0))
+        raise TrackingError(f"{len(bad)} seed(s) lie outside the last frame ({shape0[1]}x{shape0[0]} px), "
+                            f"first index {bad[0]}: seeds are (x, y) pixels of the LAST frame")
+    win_size = int(win_size)
+    if win_size < 5 or win_size % 2 == 0:
+        raise TrackingError(f"win_size must be an odd integer >= 5, got {win_size}")
+    max_jump = float(win_size if max_jump_px is None else max_jump_px)
+    if not max_jump > 0:
+        raise TrackingError(f"max_jump_px must be > 0, got {max_jump_px!r}")
+    if not fb_threshold_px > 0:
+        raise TrackingError(f"fb_threshold_px must be > 0, got {fb_threshold_px!r}")
+    n = len(seeds)
+    if seed_kind is None:
+        kinds = np.array(["seed"] * n, dtype=object)
+    elif isinstance(seed_kind, str):
+        kinds = np.array([seed_kind] * n, dtype=object)
+    else:
+        kinds = np.asarray(list(seed_kind), dtype=object)
+        if len(kinds) != n:
+            raise TrackingError(f"seed_kind has {len(kinds)} labels for {n} seeds")
+
+    F = len(frames)
+    ref = F - 1
+    norm, blank = [], []
+    for fr in frames:
+        f01, b = normalize_frame(_as_2d(fr, "frame"))
+        norm.append(f01)
+        blank.append(b)
+    if blank[ref]:
+        raise TrackingError(f"the reference (last) frame {ref} is blank: nothing can be tracked")
+    u8 = [_to_u8(f) for f in norm]
+
+    lk_kw = dict(winSize=(win_size, win_size), maxLevel=int(max_level),
+                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3))
+    half = win_size // 2
+
+    xy = np.full((F, n, 2), np.nan)
+    fb = np.full((F, n), np.nan)
+    valid = np.zeros((F, n), bool)
+    zn = np.full((F, n), np.nan)
+    xy[ref] = seeds
+    fb[ref] = 0.0
+    valid[ref] = True
+    zn[ref] = 1.0
+    ref_patches = _sample_patches(norm[ref], seeds, half)
+    lam_min = _min_gradient_energy(norm[ref], seeds, half)
+    sig = np.full((F, n), np.nan)
+    sig[ref] = 0.0
+    gap = np.zeros((F, n), int)
+
+    last_frame = np.full(n, ref)          # frame index of the last valid step
+    last_pos = seeds.copy()               # position there
+
+    icgn_refine = None
+    if method == "subset":
+        from .subset import icgn_refine, prefilter_image   # lazy: only method="subset" needs it
+        hw = int(subset_half_window if subset_half_window is not None else half)
+        ref_coef = prefilter_image(norm[ref].astype(np.float64))
+        grad_last = np.zeros((n, 6))      # affine warp of each track's last valid step
+
+    order = range(F - 2, -1, -1)
+    if progress:
+        from tqdm.auto import tqdm
+        order = tqdm(order, total=F - 1, desc=f"tracking backwards ({method})", unit="frame")
+    warned_blank = []
+    for k in order:
+        if blank[k]:
+            warned_blank.append(k)
+            continue                      # nothing can be matched; tracks stay suspended
+        # 1. chained LK from each track's source frame
+        chain = np.full((n, 2), np.nan)
+        chain_ok = np.zeros(n, bool)
+        chain_fb = np.full(n, np.nan)
+        for src in np.unique(last_frame):
+            sel = np.flatnonzero(last_frame == src)
+            p_src = last_pos[sel]
+            p_k, ok = _lk(u8[src], u8[k], p_src, None, lk_kw)
+            back, okb = _lk(u8[k], u8[src], p_k, p_src, lk_kw)
+            e = np.linalg.norm(back - p_src, axis=1)
+            chain[sel] = p_k
+            chain_ok[sel] = ok & okb
+            chain_fb[sel] = e
+        guess = np.where(np.isfinite(chain), chain, last_pos)
+
+        if not direct_correction:
+            pos, ok, e = chain, chain_ok, chain_fb
+        elif method == "lk":
+            pos, ok = _lk(u8[ref], u8[k], seeds, guess, lk_kw)
+            back, okb = _lk(u8[k], u8[ref], pos, seeds, lk_kw)
+            ok &= okb
+            e = np.linalg.norm(back - seeds, axis=1)
+        else:
+            cur = norm[k].astype(np.float64)
+            cur_coef = prefilter_image(cur)
+            ref64 = norm[ref].astype(np.float64)
+            res = icgn_refine(ref64, cur, seeds, guess, half_window=hw, warp="affine",
+                              init_warp=grad_last, ref_prefiltered=ref_coef,
+                              cur_prefiltered=cur_coef)
+            pos = np.asarray(res.pts, float).copy()
+            ok = np.asarray(res.converged, bool) & _inside(np.nan_to_num(pos, nan=-1.0), shape0)
+            pos[~ok] = np.nan
+            w = np.asarray(res.warp, float)
+            # backward check: the subset at pos in frame k matched back into the reference,
+            # starting from the inverse of the forward affine warp
+            e = np.full(n, np.nan)
+            okp = np.flatnonzero(ok)
+            if len(okp):
+                A = np.stack([[1 + w[okp, 1], w[okp, 2]], [w[okp, 4], 1 + w[okp, 5]]], axis=0)
+                Ainv = np.linalg.inv(np.moveaxis(A, (0, 1), (1, 2)))
+                iw = np.zeros((len(okp), 6))
+                iw[:, [1, 2, 4, 5]] = (Ainv - np.eye(2)).reshape(-1, 4)
+                rb = icgn_refine(cur, ref64, pos[okp], seeds[okp], half_window=hw,
+                                 warp="affine", init_warp=iw, ref_prefiltered=cur_coef,
+                                 cur_prefiltered=ref_coef)
+                e[okp] = np.linalg.norm(np.asarray(rb.pts, float) - seeds[okp], axis=1)
+                okb = np.zeros(n, bool)
+                okb[okp] = np.asarray(rb.converged, bool)
+                ok &= okb
+        if method == "subset":
+            # the subset's own affine-warped ZNCC and Gauss-Newton sigma
+            z = np.where(ok, np.asarray(res.zncc, float), np.nan)
+            sx = np.asarray(res.sigma_px, float).reshape(n, 2)
+            fin = ok & np.isfinite(sx).all(axis=1)
+            sig[k] = np.where(fin, np.where(np.isfinite(sx), sx, 0).max(axis=1), np.inf)
+        else:
+            z = _zncc(ref_patches, _sample_patches(norm[k], pos, half))
+            sig[k] = match_sigma_px(z, lam_min)
+        zn[k] = z
+        good = ok & np.isfinite(e) & (e <= fb_threshold_px)
+        with np.errstate(invalid="ignore"):
+            good &= np.linalg.norm(pos - last_pos, axis=1) <= max_jump
+        if min_zncc is not None:
+            good &= np.isfinite(z) & (z >= min_zncc)
+        if max_sigma_px is not None:
+            good &= sig[k] <= max_sigma_px
+        if outlier_threshold is not None:
+            good &= ~median_outliers(seeds, pos - seeds, good, threshold=outlier_threshold,
+                                     n_neighbours=int(n_neighbours))
+        xy[k] = pos
+        fb[k] = e
+        gap[k] = last_frame - k - 1
+        valid[k] = good
+        last_frame[good] = k
+        last_pos[good] = pos[good]
+        if method == "subset":
+            grad_last[good] = w[good]
+
+    if warned_blank:
+        warnings.warn(f"frame(s) {sorted(warned_blank)} are blank (no contrast): every track is "
+                      "invalid there and resumes from its last valid frame", TrackingWarning,
+                      stacklevel=2)
+    if F > 1 and not valid[:ref].any():
+        raise TrackingError(f"every track was lost at the first step (frame {ref - 1}) and none "
+                            "recovered in any earlier frame: check the frame order (frame 0 = "
+                            "earliest), the seeds (pixels of the last frame) or loosen "
+                            "fb_threshold_px/min_zncc")
+    empty = [k for k in range(ref) if not valid[k].any() and k not in warned_blank]
+    if empty:
+        alive = np.flatnonzero(valid.any(axis=1))
+        msg = f"no valid track in frame(s) {empty}: their displacements are undefined"
+        if alive.min() > 0:
+            msg += (f"; the last track was lost at frame {alive.min() - 1} (valid for the last "
+                    f"time in frame {alive.min()})")
+        warnings.warn(msg, TrackingWarning, stacklevel=2)
+    params = dict(win_size=win_size, max_level=max_level, fb_threshold_px=fb_threshold_px,
+                  min_zncc=min_zncc, direct_correction=direct_correction,
+                  max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
+                  n_neighbours=n_neighbours, max_jump_px=max_jump)
+    return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
+                  reference_frame=ref, method=method, params=params)
+
+
+# ----------------------------------------------------------------------------- registration
+
+def register_points(src_img, dst_img, pts, model="affine", ratio=0.75, ransac_threshold_px=2.0,
+                    min_matches=6):
+    """Map points of one image into another by SIFT matching and a RANSAC 2D transform.
+
+    Used to bring points found in end-state stereo view 0 into the last frame of the series
+    (the views may differ by stage tilt, i.e. x-scaling by cos θ, shift and scale).
+
+    Parameters
+    ----------
+    src_img, dst_img : (H, W) arrays
+    pts : (N, 2) array of (x, y) pixels in ``src_img``
+    model : {"affine", "similarity"}
+        ``cv2.estimateAffine2D`` (6 dof) or ``cv2.estimateAffinePartial2D`` (4 dof).
+    ratio : float
+        Lowe's ratio-test threshold (Lowe 2004, sec. 7.1).
+    ransac_threshold_px : float
+        RANSAC inlier threshold, pixels.
+    min_matches : int
+        Fewest inlier matches accepted.
+
+    Returns
+    -------
+    mapped : (N, 2) array of (x, y) pixels in ``dst_img``
+    A : (2, 3) array with ``[x', y']ᵀ = A @ [x, y, 1]ᵀ``
+    residual_px : float
+        RMS transfer residual of the RANSAC inlier matches, pixels.
+
+    Raises
+    ------
+    GeometryError
+        Too few matches (different scenes, blank image) or unknown model.
+    """
+    if model not in ("affine", "similarity"):
+        raise GeometryError(f"model must be 'affine' or 'similarity', got {model!r}")
+    pts = np.asarray(pts, float)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise GeometryError(f"pts must be an (N, 2) array of (x, y) pixels, got shape {pts.shape}")
+    imgs = []
+    for name, im in (("src_img", src_img), ("dst_img", dst_img)):
+        f01, b = normalize_frame(_as_2d(im, name))
+        if b:
+            raise GeometryError(f"{name} is blank: no features to register")
+        imgs.append(_to_u8(f01))
+    sift = cv2.SIFT_create()
+    k1, d1 = sift.detectAndCompute(imgs[0], None)
+    k2, d2 = sift.detectAndCompute(imgs[1], None)
+    if d1 is None or d2 is None or len(k1) < min_matches or len(k2) < min_matches:
+        raise GeometryError(f"too few SIFT features ({0 if d1 is None else len(k1)} and "
+                            f"{0 if d2 is None else len(k2)}) to register the images: are they "
+                            "views of the same area?")
+    matches = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)
+    good = [m[0] for m in matches if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    if len(good) < min_matches:
+        raise GeometryError(f"only {len(good)} SIFT matches pass the ratio test (need "
+                            f"{min_matches}): the images may not show the same area")
+    a = np.float32([k1[m.queryIdx].pt for m in good])
+    b = np.float32([k2[m.trainIdx].pt for m in good])
+    est = cv2.estimateAffine2D if model == "affine" else cv2.estimateAffinePartial2D
+    A, inl = est(a, b, method=cv2.RANSAC, ransacReprojThreshold=float(ransac_threshold_px),
+                 maxIters=5000, confidence=0.999)
+    if A is None or inl is None or int(inl.sum()) < min_matches:
+        raise GeometryError(f"RANSAC found {0 if inl is None else int(inl.sum())} inliers among "
+                            f"{len(good)} matches (need {min_matches}): registration failed")
+    inl = inl.ravel().astype(bool)
+    # refine on the inliers by least squares
+    A2, _ = est(a[inl], b[inl], method=cv2.LMEDS) if inl.sum() >= 6 else (A, None)
+    if A2 is not None:
+        A = A2
+    A = A.astype(float)
+    r = a[inl] @ A[:, :2].T + A[:, 2] - b[inl]
+    residual = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    mapped = pts @ A[:, :2].T + A[:, 2]
+    return mapped, A, residual
+
+
+# ----------------------------------------------------------------------------- records / csv
+
+def tracks_to_records(tracks, seed_kind=None):
+    """Rows of ``tracks.csv``: one per (track, frame), frames chronological.
+
+    Parameters
+    ----------
+    tracks : Tracks
+    seed_kind : (N,) sequence of str, optional
+        Overrides ``tracks.seed_kind``.
+
+    Returns
+    -------
+    list of dict with keys ``track_id, seed, frame, x_px, y_px, fb_error_px, valid``
+    (NaN positions where no estimate exists; ``valid`` is bool).
+    """
+    kinds = tracks.seed_kind if seed_kind is None else np.asarray(list(seed_kind), dtype=object)
+    if len(kinds) != tracks.n_tracks:
+        raise TrackingError(f"seed_kind has {len(kinds)} labels for {tracks.n_tracks} tracks")
+    rows = []
+    for i in range(tracks.n_tracks):
+        for f in range(tracks.n_frames):
+            rows.append({"track_id": i, "seed": str(kinds[i]), "frame": f,
+                         "x_px": float(tracks.xy[f, i, 0]), "y_px": float(tracks.xy[f, i, 1]),
+                         "fb_error_px": float(tracks.fb_error_px[f, i]),
+                         "valid": bool(tracks.valid[f, i])})
+    return rows
+
+
+def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
+    """Write ``tracks.csv`` (columns :data:`TRACKS_CSV_COLUMNS`).
+
+    Raises
+    ------
+    SemlabError
+        ``path`` exists and ``overwrite`` is False.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise SemlabError(f"{path} already exists: pass overwrite=True to replace it or choose "
+                          "another --out folder")
+    rows = tracks_to_records(tracks, seed_kind)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(TRACKS_CSV_COLUMNS))
+        w.writeheader()
+        for r in rows:
+            r = dict(r)
+            for k in ("x_px", "y_px", "fb_error_px"):
+                r[k] = "" if not np.isfinite(r[k]) else f"{r[k]:.6f}"
+            r["valid"] = int(r["valid"])
+            w.writerow(r)
+    return path
+
+
+# ----------------------------------------------------------------------------- displacements
+
+def _check_pixel_size(pixel_size_um):
+    if pixel_size_um is None or not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
+        raise SemlabError(f"pixel_size_um must be a positive number, got {pixel_size_um!r}; it is "
+                          "in the SEM file metadata or experiment.toml")
+    return float(pixel_size_um)
+
+
+def _frame_index(f, F, what):
+    fi = int(f)
+    if not -F <= fi < F:
+        raise TrackingError(f"{what}={f} is out of range for {F} frames")
+    return fi % F
+
+
+def displacements(tracks, pixel_size_um, frame_from=0, frame_to=-1):
+    """In-plane displacement of each material point from ``frame_from`` to ``frame_to``.
+
+    Parameters
+    ----------
+    tracks : Tracks
+    pixel_size_um : float
+        µm per pixel.
+    frame_from, frame_to : int
+        Chronological frame indices (negative counts from the end).
+
+    Returns
+    -------
+    dict of (N,) arrays ``dx_um, dy_um, d_um`` (x right, y down), NaN where the track is
+    invalid in either frame, plus ``valid`` (N,) bool.
+    """
+    s = _check_pixel_size(pixel_size_um)
+    F = tracks.n_frames
+    a = _frame_index(frame_from, F, "frame_from")
+    b = _frame_index(frame_to, F, "frame_to")
+    ok = tracks.valid[a] & tracks.valid[b]
+    d = (tracks.xy[b] - tracks.xy[a]) * s
+    d[~ok] = np.nan
+    return {"dx_um": d[:, 0], "dy_um": d[:, 1], "d_um": np.hypot(d[:, 0], d[:, 1]), "valid": ok}
+
+
+def displacement_history(tracks, pixel_size_um, frame_from=0):
+    """Displacement of each material point in every frame relative to ``frame_from``.
+
+    Returns
+    -------
+    dict of (F, N) arrays ``dx_um, dy_um, d_um`` (NaN where the track is invalid in that
+    frame or in ``frame_from``) and ``valid`` (F, N) bool.
+    """
+    s = _check_pixel_size(pixel_size_um)
+    a = _frame_index(frame_from, tracks.n_frames, "frame_from")
+    ok = tracks.valid & tracks.valid[a][None, :]
+    d = (tracks.xy - tracks.xy[a][None]) * s
+    d[~ok] = np.nan
+    return {"dx_um": d[..., 0], "dy_um": d[..., 1], "d_um": np.hypot(d[..., 0], d[..., 1]),
+            "valid": ok}

@@ -1,0 +1,230 @@
+"""Tests of semlab.tracking on synthetic series made here (known displacement field)."""
+
+import csv
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab.errors import GeometryError, SemlabError, TrackingError
+from semlab.tracking import (TRACKS_CSV_COLUMNS, Tracks, TrackingWarning, displacement_history,
+                             displacements, median_outliers, normalize_frame, register_points,
+                             shi_tomasi_seeds, track_reverse, tracks_to_records,
+                             write_tracks_csv)
+
+N_FRAMES = 6
+
+
+def _texture(rng, shape, pad=20, sigma=2.0):
+    t = ndimage.gaussian_filter(rng.standard_normal((shape[0] + 2 * pad, shape[1] + 2 * pad)), sigma)
+    return t / t.std(), pad
+
+
+def make_series(seed=0, shape=(150, 180), amp_px=2.0,
+                contrast=(0.15, 0.3, 0.5, 0.7, 0.85, 1.0),
+                noise=(0.08, 0.05, 0.03, 0.02, 0.01, 0.005)):
+    """Band-limited texture displaced by a smooth field growing linearly over the frames.
+
+    Frame f shows ``I_f(x) = a_f T(x - u_f(x)) + b_f + noise`` with early frames low in
+    contrast and noisy and the brightness rising with f. Returns the frames (chronological)
+    and ``truth(pts_last) -> (F, N, 2)`` true positions of the material points seen at
+    ``pts_last`` in the last frame.
+    """
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    tex, pad = _texture(rng, shape)
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+
+    def u(f, x, y):
+        t = f / (N_FRAMES - 1)
+        return (amp_px * t * (0.6 * np.sin(2 * np.pi * x / W) + 0.4 * y / H),
+                amp_px * t * (0.5 * np.cos(2 * np.pi * y / H) - 0.3 * x / W))
+
+    frames = []
+    for f in range(N_FRAMES):
+        ux, uy = u(f, xx, yy)
+        img = ndimage.map_coordinates(tex, [yy - uy + pad, xx - ux + pad], order=3, mode="reflect")
+        frames.append(100 + 30 * f + 40 * contrast[f] * img + 40 * noise[f] * rng.standard_normal(shape))
+
+    def truth(pts_last):
+        ux, uy = u(N_FRAMES - 1, pts_last[:, 0], pts_last[:, 1])
+        X = pts_last - np.c_[ux, uy]
+        out = np.empty((N_FRAMES,) + pts_last.shape)
+        for f in range(N_FRAMES):
+            x = X.copy()
+            for _ in range(60):                     # x = X + u_f(x), a contraction here
+                ux, uy = u(f, x[:, 0], x[:, 1])
+                x = X + np.c_[ux, uy]
+            out[f] = x
+        return out
+
+    return frames, truth
+
+
+@pytest.fixture(scope="module")
+def series():
+    frames, truth = make_series()
+    seeds = shi_tomasi_seeds(frames[-1], quality=0.05, border_px=12)
+    return frames, seeds, truth(seeds)
+
+
+def _errors(tr, true_xy):
+    return np.linalg.norm(tr.xy - true_xy, axis=2)
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+@pytest.mark.parametrize("method", ["lk", "subset"])
+def test_reverse_tracking_flags_every_bad_step(series, method):
+    if method == "subset":
+        pytest.importorskip("semlab.subset")
+    frames, seeds, true_xy = series
+    tr = track_reverse(frames, seeds, method=method, progress=False, seed_kind="shi_tomasi")
+    F, N = N_FRAMES, len(seeds)
+    assert tr.xy.shape == (F, N, 2) and tr.valid.shape == (F, N) and tr.fb_error_px.shape == (F, N)
+    # chronological storage: the reference (last) frame holds the seeds
+    assert np.array_equal(tr.xy[-1], seeds) and tr.valid[-1].all() and (tr.fb_error_px[-1] == 0).all()
+    err = _errors(tr, true_xy)
+    # no step flagged valid with an error above 0.5 px
+    assert not np.any(tr.valid & ~(err < 0.5)), np.nanmax(np.where(tr.valid, err, np.nan))
+    # the clear frames are tracked (the check above is not vacuous) and accurately
+    assert tr.valid[1:].mean() > 0.9
+    assert np.sqrt(np.mean(err[1][tr.valid[1]] ** 2)) < 0.15
+    # the noisy, low-contrast frame 0 has invalid steps, and they are the worse ones
+    inv = ~tr.valid[0]
+    assert inv.sum() > 0
+    if tr.valid[0].any():
+        assert np.nanmedian(err[0][inv]) > np.median(err[0][tr.valid[0]])
+    # every invalid step carries a failing reason: fb, zncc or sigma, or no position
+    assert np.all(tr.sigma_px[-1] == 0) and np.isfinite(tr.zncc[tr.valid]).all()
+    assert (tr.seed_kind == "shi_tomasi").all()
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_pure_noise_frame_makes_steps_invalid_and_tracks_recover(series):
+    frames, seeds, true_xy = series
+    frames = list(frames)
+    frames[2] = 130 + 20 * np.random.default_rng(5).standard_normal(frames[2].shape)
+    tr = track_reverse(frames, seeds, progress=False)
+    err = _errors(tr, true_xy)
+    assert tr.valid[2].mean() < 0.05
+    assert not np.any(tr.valid & ~(err < 0.5))
+    # policy: suspended tracks resume from their last valid frame (3) in frame 1
+    assert tr.valid[1].mean() > 0.8
+    assert np.all(tr.gap_frames[1][tr.valid[1] & ~tr.valid[2]] == 1)
+    assert np.all(tr.gap_frames[3] == 0)
+
+
+def test_blank_frame_makes_steps_invalid(series):
+    frames, seeds, true_xy = series
+    frames = list(frames)
+    frames[3] = np.full_like(frames[3], 77.0)
+    with pytest.warns(TrackingWarning, match=r"\[3\]"):
+        tr = track_reverse(frames, seeds, progress=False)
+    assert not tr.valid[3].any() and np.isnan(tr.xy[3]).all()
+    err = _errors(tr, true_xy)
+    assert tr.valid[2].mean() > 0.8 and not np.any(tr.valid & ~(err < 0.5))
+
+
+def test_records_csv_and_displacements(series, tmp_path):
+    frames, seeds, true_xy = series
+    tr = track_reverse(frames, seeds[:20], progress=False, seed_kind="stereo")
+    rows = tracks_to_records(tr)
+    assert len(rows) == 20 * N_FRAMES and tuple(rows[0]) == TRACKS_CSV_COLUMNS
+    assert [r["frame"] for r in rows[:N_FRAMES]] == list(range(N_FRAMES))
+    p = write_tracks_csv(tmp_path / "tracks.csv", tr)
+    with open(p) as fh:
+        back = list(csv.DictReader(fh))
+    assert len(back) == len(rows) and back[0]["seed"] == "stereo"
+    assert float(back[N_FRAMES - 1]["x_px"]) == pytest.approx(seeds[0, 0], abs=1e-6)
+    with pytest.raises(SemlabError, match="overwrite"):
+        write_tracks_csv(p, tr)
+    write_tracks_csv(p, tr, overwrite=True)
+
+    d = displacements(tr, pixel_size_um=0.03)
+    ok = d["valid"]
+    true_d = (true_xy[-1, :20] - true_xy[0, :20]) * 0.03
+    assert np.all(np.isnan(d["dx_um"][~ok]))
+    assert np.allclose(d["dx_um"][ok], true_d[ok, 0], atol=0.5 * 0.03)
+    h = displacement_history(tr, 0.03)
+    assert h["dx_um"].shape == (N_FRAMES, 20)
+    assert np.allclose(h["dx_um"][-1][ok], d["dx_um"][ok])
+
+
+def test_displacements_exact_on_constructed_tracks():
+    xy = np.zeros((3, 2, 2))
+    xy[1] = [[1, 0], [0, 0]]
+    xy[2] = [[3, 4], [1, 1]]
+    valid = np.ones((3, 2), bool)
+    valid[0, 1] = False
+    tr = Tracks(xy=xy, fb_error_px=np.zeros((3, 2)), valid=valid, zncc=np.ones((3, 2)),
+                sigma_px=np.zeros((3, 2)), gap_frames=np.zeros((3, 2), int), seed_kind=np.array(["a", "b"], object),
+                reference_frame=2)
+    d = displacements(tr, pixel_size_um=0.5)
+    assert d["d_um"][0] == pytest.approx(2.5) and np.isnan(d["d_um"][1])
+    d = displacements(tr, 0.5, frame_from=1, frame_to=2)
+    assert np.allclose(d["dx_um"], [1.0, 0.5])
+    with pytest.raises(SemlabError):
+        displacements(tr, pixel_size_um=None)
+    with pytest.raises(TrackingError):
+        displacements(tr, 0.5, frame_from=7)
+
+
+def test_median_outliers_finds_a_jump():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 100, (200, 2))
+    u = np.c_[0.01 * X[:, 0], -0.02 * X[:, 1]] + rng.normal(0, 0.02, X.shape)
+    u[17] += [1.0, 0.0]
+    bad = median_outliers(X, u, np.ones(200, bool))
+    assert bad[17] and bad.sum() <= 3
+
+
+def test_register_points_recovers_tilt_like_affine():
+    rng = np.random.default_rng(3)
+    tex, _ = _texture(rng, (240, 280), pad=0, sigma=1.5)
+    src = (tex - tex.min()) / np.ptp(tex) * 200
+    A_true = np.array([[np.cos(np.deg2rad(10)), 0.0, 4.5], [0.0, 1.0, -3.0]])   # x-scaling + shift
+    dst = cv2.warpAffine(src.astype(np.float32), A_true, (280, 240), flags=cv2.INTER_CUBIC)
+    pts = rng.uniform(60, 180, (10, 2))
+    mapped, A, res = register_points(src, dst, pts)
+    assert np.abs(mapped - (pts @ A_true[:, :2].T + A_true[:, 2])).max() < 0.2
+    assert res < 1.0 and A.shape == (2, 3)
+    with pytest.raises(GeometryError):
+        register_points(src, np.zeros_like(src), pts)
+
+
+def test_normalize_frame_invariant_to_gain_and_offset():
+    img = np.random.default_rng(0).normal(size=(32, 32))
+    a, _ = normalize_frame(img)
+    b, _ = normalize_frame(3.0 * img + 1000)
+    assert np.allclose(a, b, atol=1e-5)
+    assert normalize_frame(np.ones((9, 9)))[1]
+
+
+def test_error_paths(series):
+    frames, seeds, _ = series
+    with pytest.raises(TrackingError, match="at least 2 frames"):
+        track_reverse(frames[:1], seeds, progress=False)
+    bad = list(frames)
+    bad[2] = bad[2][:-1]
+    with pytest.raises(TrackingError, match="frame 2"):
+        track_reverse(bad, seeds, progress=False)
+    with pytest.raises(TrackingError, match="no seeds"):
+        track_reverse(frames, np.zeros((0, 2)), progress=False)
+    with pytest.raises(TrackingError, match="outside"):
+        track_reverse(frames, [[1000.0, 5.0]], progress=False)
+    with pytest.raises(TrackingError, match="method"):
+        track_reverse(frames, seeds, method="magic", progress=False)
+    blank_last = list(frames)
+    blank_last[-1] = np.zeros_like(frames[-1])
+    with pytest.raises(TrackingError, match="reference"):
+        track_reverse(blank_last, seeds, progress=False)
+    with pytest.raises(TrackingError, match="blank"):
+        shi_tomasi_seeds(np.full((64, 64), 5.0))
+    # two unrelated images: every track is lost
+    other = 100 + 40 * _texture(np.random.default_rng(99), frames[0].shape)[0][20:-20, 20:-20]
+    with pytest.raises(TrackingError, match="lost"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TrackingWarning)
+            track_reverse([other, frames[-1]], seeds, progress=False)
