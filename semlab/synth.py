@@ -530,7 +530,7 @@ def _series_schedule(n_frames, cycles_end=20000):
 def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_deg=(-5.0, 5.0),
                     n_frames=6, n_clicks=50, click_noise_px=0.5, line_noise_px=1.0,
                     slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0), band_angle_deg=35.0,
-                    noise=0.01, frame_noise=0.015, early_contrast=0.12, write_block=True,
+                    noise=0.01, frame_noise=0.012, early_contrast=0.3, write_block=True,
                     block_size=(768, 1024),
                     name=None, overwrite=False, progress=True):
     """Write a complete synthetic experiment folder with ground truth.

@@ -13,8 +13,10 @@ from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
 HERE = Path(__file__).resolve().parents[1] / "notebooks"
 
 PARAMS = '''# parameters (papermill injects new values after this cell)
-experiment = "../data_samples/demo"   # experiment folder or its experiment.toml
-out_dir = None                        # folder for result files; None = do not write files
+# experiment: the experiment folder or its experiment.toml
+experiment = "../data_samples/demo"
+# out_dir: folder for result files (semlab run sets it); None = do not write files
+out_dir = None
 '''
 
 SETUP = '''%matplotlib inline
@@ -229,31 +231,48 @@ the eight-point F is poorly determined — semlab says so instead of returning a
     params('stability_resamples = 40   # random subsets per size in the stability plot\n'),
     code(SETUP),
     code('''
-from semlab import epipolar
+from semlab import epipolar, matching
+
+
+def fit(fn, x0, x1):
+    """F by one method, or None and the reason."""
+    try:
+        return fn(x0, x1), None
+    except semlab.SemlabError as exc:
+        return None, str(exc)
+
+
 corr = exp.correspondences() if exp.stereo is not None else None
 if corr is None:
     print("No correspondences: this notebook needs [stereo] correspondences (see 02).")
 else:
-    x0, x1 = corr.pts[:, 0], corr.pts[:, 1]
-    Fa = epipolar.fundamental_affine(x0, x1)
-    axis, line = epipolar.affine_tilt_axis(Fa)
-    print("affine F (clicked points) =\\n", (Fa / np.abs(Fa).max()).round(5))
-    print(f"tilt axis in view 0: {axis[0]:.2f}° from x (90° = image y); epipolar lines at {line[0]:.2f}°")
-    print(f"median Sampson distance: {np.median(epipolar.sampson_distance(Fa, x0, x1)):.3f} px")
-    try:
-        F8 = epipolar.fundamental_8point(x0, x1)
-        e0, e1 = epipolar.epipoles(F8)
-        print("eight-point F =\\n", (F8 / np.abs(F8).max()).round(5))
-        print("epipoles (homogeneous):", e0.round(4), e1.round(4))
-    except semlab.SemlabError as exc:
-        F8 = None
-        print("eight-point F:", exc)
+    views = exp.views()
+    refined = matching.refine_correspondences(views, corr.pts)
+    sets = {"clicked": corr.pts, "refined": refined.pts[refined.valid]}
+    F = {}
+    for name, p in sets.items():
+        x0, x1 = p[:, 0], p[:, 1]
+        for model, fn in (("affine", epipolar.fundamental_affine), ("8point", epipolar.fundamental_8point)):
+            F[name, model], err = fit(fn, x0, x1)
+            if err:
+                print(f"{model:>6} F from {len(p)} {name} points: undetermined -- {err}")
+                continue
+            d = np.median(epipolar.sampson_distance(F[name, model], x0, x1))
+            line = f"{model:>6} F from {len(p)} {name} points: median Sampson distance {d:.3f} px"
+            if model == "affine":
+                axis, _ = epipolar.affine_tilt_axis(F[name, model])
+                line += f", tilt axis {axis[0]:.2f}° from x (90° = image y)"
+            print(line)
+    x0, x1 = sets["refined"][:, 0], sets["refined"][:, 1]
+    Fa = F["refined", "affine"]
+    if Fa is not None:
+        print("affine F (refined points) =\\n", (Fa / np.abs(Fa).max()).round(5))
+        print("epipoles (at infinity for affine views):", [e.round(4) for e in epipolar.epipoles(Fa)])
 '''),
     md("## Epipolar lines over both views (affine F)"),
     code('''
-if corr is not None:
-    views = exp.views()
-    fig = plots.show_epipolar_lines(views[0], views[1], Fa, x0, x1, title=" (affine F)")
+if corr is not None and Fa is not None:
+    fig = plots.show_epipolar_lines(views[0], views[1], Fa, x0, x1, title=" (affine F, refined points)")
 '''),
     md("""
 ## Stability: how F settles with the number of points
@@ -273,6 +292,336 @@ if corr is not None and len(x0) >= 12:
         except semlab.SemlabError as exc:
             print(model, ":", exc)
     ax.set_title("F stability against the number of clicked points")
+'''),
+]
+
+NOTEBOOKS["04_depth"] = [
+    md("""
+# 04 · Heights of the end-state surface
+
+Heights come from the sub-pixel x-parallax between the tilted views
+(`u = cx + (x cosθ + z sinθ)/s`): at ±5° and 0.03 µm/px one pixel of parallax is 0.17 µm of
+height, so the matching has to be good to a few hundredths of a pixel. The chain:
+correspondences (hand clicks refined by sub-pixel matching, plus automatic matching) → tilts
+(experiment, SEM metadata, estimated from 3+ views, or vanishing points) → least-squares
+(x, z) per point → heights above a robustly fitted reference plane, z > 0 = extrusion, with
+1σ error bars (matching σ propagated, plus a bootstrap of the plane fit).
+
+The reference method — raw clicks through the same geometry — is shown alongside: its error
+is of the size of the thing measured.
+"""),
+    params('method = None        # "raw", "refined", "auto", "merged"; None = merged if clicks exist\n'
+           'n_boot = 100         # bootstrap resamples for the error bars\n'),
+    code(SETUP),
+    code('''
+from semlab import pipeline, surface
+if exp.stereo is None:
+    print("This experiment has no [stereo] table: no heights to compute.")
+    res = None
+else:
+    res = pipeline.run_stereo(exp, method=method, n_boot=n_boot, progress=False)
+    print(f"{len(res.z_um)} points ({(res.kind == 'click').sum()} clicked, {(res.kind == 'auto').sum()} automatic), "
+          f"method {res.method}")
+    print(f"tilts {np.round(res.tilt_deg, 3)} deg from {res.tilt_source}; tilt axis {res.tilt_axis_deg:.2f}°")
+    print(f"z from {res.z_um.min():+.3f} to {res.z_um.max():+.3f} µm; median 1σ {np.median(res.z_err_um) * 1000:.1f} nm")
+    for n in res.notes:
+        print("note:", n)
+    if out_dir:
+        for f in pipeline.write_stereo_results(res, out_dir):
+            print("wrote", f)
+'''),
+    md("## Height map: measured points over view 0 (colour = z in µm)"),
+    code('''
+if res is not None:
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    plots.show_image(exp.views()[0], ax=ax, title="heights over view 0")
+    lim = np.percentile(np.abs(res.z_um), 99)
+    sc = ax.scatter(res.pts[:, 0, 0], res.pts[:, 0, 1], c=res.z_um, cmap="RdBu_r", vmin=-lim, vmax=lim, s=6)
+    fig.colorbar(sc, ax=ax, label="z (µm), > 0 extrusion")
+'''),
+    md("## x–z and y–z projections, with 1σ error bars"),
+    code('''
+if res is not None:
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
+    for ax, k, name in ((axes[0], 0, "x"), (axes[1], 1, "y")):
+        ax.errorbar(res.xyz_um[:, k], res.z_um, yerr=res.z_err_um, fmt=".", ms=2, elinewidth=0.5, alpha=0.6)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(f"{name} (µm)")
+    axes[0].set_ylabel("z (µm)")
+    fig.tight_layout()
+'''),
+    md("## Profile along the crack (points with a crack_id)"),
+    code('''
+if res is not None and (res.crack_id >= 0).any():
+    on = res.crack_id >= 0
+    xy = res.xyz_um[on, :2]
+    # the crack direction: principal axis of its points
+    c = xy.mean(0)
+    d = np.linalg.svd(xy - c)[2][0]
+    t = (xy - c) @ d
+    p0, p1 = c + d * t.min(), c + d * t.max()
+    prof = surface.profile_along_line(res.xyz_um[:, :2], res.z_um, p0, p1, width_um=1.0)
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.errorbar(prof["distance_um"], prof["z_um"], yerr=res.z_err_um[prof["index"]], fmt="o", ms=3)
+    ax.set_xlabel("distance along the crack (µm)")
+    ax.set_ylabel("z (µm)")
+    ax.set_title("heights within 0.5 µm of the crack line")
+else:
+    print("No crack points (crack_id) in the correspondences.")
+'''),
+    md("## Trend of z with x and y (the paper saw more extrusion at high y)"),
+    code('''
+if res is not None:
+    tr = surface.height_trend(res.xyz_um)
+    for k, v in tr.items():
+        print(f"{k}: {v:.4g}" if np.isscalar(v) else f"{k}: {v}")
+'''),
+    md("## The reference method: raw clicks (no refinement) through the same geometry"),
+    code('''
+if res is not None and exp.correspondences() is not None:
+    raw = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
+    print(f"raw clicks: {len(raw.z_um)} points, median 1σ {np.median(raw.z_err_um) * 1000:.0f} nm "
+          f"(a 0.5 px click error is ~{0.5 * 2 ** 0.5 * exp.pixel_size_um / np.sin(np.deg2rad(np.ptp(raw.tilt_deg))) * 1000:.0f} nm of height)")
+'''),
+]
+
+TRACK_SETUP = '''
+from semlab import pipeline, stats
+if exp.series is None:
+    print("This experiment has no [series] table: nothing to track.")
+    tr = None
+else:
+    sp = pipeline.stereo_points(exp, out_dir)
+    tr = pipeline.run_tracking(exp, stereo=sp, method=track_method, progress=False)
+    t = tr.tracks
+    print(f"{t.n_tracks} tracks ({(tr.seed == 'corner').sum()} corner-seeded, "
+          f"{(tr.seed == 'stereo').sum()} stereo-seeded), method {t.method}")
+    print("valid fraction per frame (0 = earliest):", np.round(t.valid.mean(axis=1), 2))
+    if tr.registration:
+        print(f"stereo view 0 -> last frame registration residual {tr.registration['residual_px']:.3f} px")
+'''
+
+NOTEBOOKS["05_tracking"] = [
+    md("""
+# 05 · Back in time: tracking the surface through the fatigue test
+
+During the test only a frontal view exists. Points found at the end — Shi–Tomasi corners of
+the last frame and the stereo points of 04, registered into it — are tracked backwards to the
+first frame (pyramidal Lucas–Kanade, or the DIC-grade subset matching), frame by frame with a
+direct re-match against the last frame so drift cannot accumulate. Early frames are nearly
+featureless: every step carries its forward–backward error and a valid flag, and an invalid
+step suspends the track instead of turning into a jump. Results are stored by frame index,
+0 = earliest.
+"""),
+    params('track_method = "lk"   # "lk" (pyramidal Lucas-Kanade) or "subset" (IC-GN, DIC-grade)\n'),
+    code(SETUP),
+    code(TRACK_SETUP + '''
+if tr is not None and out_dir:
+    for f in pipeline.write_tracking_results(tr, out_dir):
+        print("wrote", f)
+'''),
+    md("## Tracks over the frames, latest first (green: valid step, red ×: flagged step)"),
+    code('''
+if tr is not None:
+    frames = exp.frames()
+    order = list(range(len(frames) - 1, -1, -max(1, (len(frames) - 1) // 3)))
+    fig, axes = plt.subplots(1, len(order), figsize=(4.6 * len(order), 4))
+    for ax, f in zip(np.atleast_1d(axes), order):
+        plots.show_image(frames[f], ax=ax, title=f"frame {f}")
+        ok = t.valid[f]
+        ax.plot(t.xy[f, ok, 0], t.xy[f, ok, 1], ".", color="lime", ms=3)
+        ax.plot(t.xy[f, ~ok, 0], t.xy[f, ~ok, 1], "x", color="red", ms=3)
+        for i in np.flatnonzero(ok)[::3]:
+            seg = t.xy[f:, i]
+            ax.plot(seg[:, 0], seg[:, 1], "-", color="yellow", lw=0.6)
+    fig.tight_layout()
+'''),
+    md("## Forward–backward error of every step (the reliability flag)"),
+    code('''
+if tr is not None:
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for f in range(t.n_frames - 1):
+        e = t.fb_error_px[f]
+        ax.scatter(np.full(e.shape, f) + np.random.default_rng(f).uniform(-0.2, 0.2, e.shape), e,
+                   c=np.where(t.valid[f], "tab:green", "tab:red"), s=4)
+    ax.axhline(t.params.get("fb_threshold_px", 0.5), color="k", lw=0.8, ls="--", label="threshold")
+    ax.set_yscale("log")
+    ax.set_xlabel("frame (0 = earliest)")
+    ax.set_ylabel("forward–backward error (px)")
+    ax.legend()
+'''),
+    md("## Lateral displacement from the earliest valid frame to the end (µm)"),
+    code('''
+if tr is not None:
+    ok = np.isfinite(tr.d_um)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, v, name in zip(axes, (tr.dx_um, tr.dy_um, tr.d_um), ("dx", "dy", "|d|")):
+        for kind, col in (("corner", "tab:blue"), ("stereo", "tab:orange")):
+            sel = ok & (tr.seed == kind)
+            if sel.any():
+                ax.hist(v[sel], bins=30, alpha=0.6, color=col, label=f"{kind} ({sel.sum()})")
+        ax.set_xlabel(f"{name} (µm)")
+        ax.set_ylabel("tracks")
+    axes[0].legend()
+    fig.tight_layout()
+    b = stats.bimodality(tr.d_um[ok])
+    print(f"|d|: two-component mixture preferred: {b['prefers_two']} (ΔBIC = {b['delta_bic']:.1f})")
+    a, c = tr.d_um[ok & (tr.seed == "corner")], tr.d_um[ok & (tr.seed == "stereo")]
+    if len(a) > 3 and len(c) > 3:
+        ks = stats.compare_distributions(a, c)
+        print(f"corner- vs stereo-seeded |d|: KS statistic {ks['ks_statistic']:.3f}, p = {ks['p_value']:.3g}")
+'''),
+]
+
+NOTEBOOKS["06_lateral_vs_depth"] = [
+    md("""
+# 06 · Lateral motion against depth
+
+For the stereo points that could be tracked back, the in-plane displacement during the test
+against the end-state height: do the points that rose the most also move the most? Pearson
+and Spearman coefficients with bootstrap 95 % confidence intervals.
+"""),
+    params('track_method = "lk"\n'),
+    code(SETUP),
+    code(TRACK_SETUP),
+    code('''
+if tr is not None:
+    sel = (tr.seed == "stereo") & np.isfinite(tr.d_um) & np.isfinite(tr.z_um)
+    print(f"{sel.sum()} stereo points with a height and a displacement")
+    if sel.sum() >= 5:
+        z, dx, dy, d = tr.z_um[sel], tr.dx_um[sel], tr.dy_um[sel], tr.d_um[sel]
+        fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+        pairs = ((d, z, "|d| (µm)", "z (µm)"), (d, np.abs(z), "|d| (µm)", "|z| (µm)"),
+                 (dx, z, "dx (µm)", "z (µm)"), (dy, z, "dy (µm)", "z (µm)"))
+        for ax, (x, y, xl, yl) in zip(axes.ravel(), pairs):
+            ax.plot(x, y, ".", ms=4)
+            c = stats.correlation(x, y, n_boot=500)
+            ax.set_title(f"Pearson {c['pearson_r']:+.2f} [{c['pearson_ci'][0]:+.2f}, {c['pearson_ci'][1]:+.2f}]\\n"
+                         f"Spearman {c['spearman_rho']:+.2f} [{c['spearman_ci'][0]:+.2f}, {c['spearman_ci'][1]:+.2f}]",
+                         fontsize=9)
+            ax.set_xlabel(xl)
+            ax.set_ylabel(yl)
+        fig.tight_layout()
+    else:
+        print("Too few stereo-seeded tracks survived to correlate lateral motion with depth.")
+'''),
+]
+
+NOTEBOOKS["07_strain"] = [
+    md("""
+# 07 · Strain
+
+Displacement gradients give the strain tensor. Sparse: constant-strain Delaunay triangles and
+a local least-squares gradient with a stated gauge length on the tracks. Dense: a grid of
+subsets matched by IC-GN. Green–Lagrange strain E = ½(FᵀF − I), principal strains and
+directions, maximum shear; with heights from the stereo step, the surface strain that includes
+the out-of-plane gradient (heights taken as the out-of-plane displacement of a surface that was
+flat when polished). Reference: the earliest frame with enough valid tracks.
+"""),
+    params('track_method = "lk"\n'),
+    code(SETUP),
+    code(TRACK_SETUP + '''
+S = tr.strain if tr is not None else {}
+if tr is not None and S:
+    print(f"reference frame {S['ref_frame']}, gauge length {S['gauge_length_um']:.2f} µm")
+    print("mean dense E (xx, yy, xy):", np.round([np.nanmean(S["E"][..., 0, 0]), np.nanmean(S["E"][..., 1, 1]),
+                                                    np.nanmean(S["E"][..., 0, 1])], 5))
+'''),
+    md("## Dense strain maps (Green–Lagrange, dimensionless) and principal directions"),
+    code('''
+if S:
+    ext = [S["grid_x_px"][0], S["grid_x_px"][-1], S["grid_y_px"][-1], S["grid_y_px"][0]]
+    comps = (("E_xx", S["E"][..., 0, 0]), ("E_yy", S["E"][..., 1, 1]), ("E_xy", S["E"][..., 0, 1]),
+             ("max shear", S["max_shear"]))
+    fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
+    for ax, (name, v) in zip(axes, comps):
+        lim = np.nanpercentile(np.abs(v), 98) or 1e-6
+        im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        ax.set_title(name)
+        ax.set_xlabel("x (px)")
+        ax.set_ylabel("y (px)")
+        fig.colorbar(im, ax=ax, label="strain (–)")
+    fig.tight_layout()
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    GX, GY = np.meshgrid(S["grid_x_px"], S["grid_y_px"])
+    a = np.deg2rad(S["angle_deg"])
+    ax.quiver(GX, GY, S["e1"] * np.cos(a), S["e1"] * np.sin(a), color="tab:red", pivot="mid",
+              headwidth=0, angles="xy", label="e1 direction")
+    ax.invert_yaxis()
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    ax.set_title("first principal strain: direction and size")
+'''),
+    md("## Sparse strain (tracks) and the surface strain with heights"),
+    code('''
+if S:
+    print("triangles: mean E", np.round(np.nanmean(S["E_tri"], axis=0), 5).tolist())
+    print("local LSQ: mean E", np.round(np.nanmean(S["E_lsq"], axis=0), 5).tolist())
+    if "E_surface" in S:
+        print("surface strain incl. out-of-plane gradients: mean E",
+              np.round(np.nanmean(S["E_surface"], axis=(0, 1)), 5).tolist())
+'''),
+    md("## Strain against cycles (mean strain of each frame relative to the end state)"),
+    code('''
+if S and "history" in S:
+    h = S["history"]
+    x = exp.series.cycles if exp.series.cycles is not None else np.arange(len(h["exx"]))
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for k in ("exx", "eyy", "exy"):
+        if k in h:
+            ax.plot(x, h[k], "o-", label=k)
+    ax.set_xlabel("cycles" if exp.series.cycles is not None else "frame")
+    ax.set_ylabel("mean strain relative to the end (–)")
+    ax.legend()
+'''),
+]
+
+NOTEBOOKS["08_validation"] = [
+    md("""
+# 08 · Validation against ground truth
+
+For synthetic experiments (made by `semlab synth`, with a `truth/` folder): height errors of
+the raw clicks (the reference method), the refined clicks and the automatic matches, tracking
+errors per frame, and the strain against the true field. Height errors are measured after
+removing the best-fit plane of the difference (the reference plane is a convention).
+"""),
+    params(),
+    code(SETUP),
+    code('''
+from semlab import pipeline, validation
+truth = exp.truth_dir
+if truth is None:
+    print("No truth/ folder: validation needs a synthetic experiment (semlab synth).")
+'''),
+    md("## Heights"),
+    code('''
+rows = {}
+if truth is not None and exp.stereo is not None:
+    for m in (["raw", "refined"] if exp.correspondences() is not None else []) + ["auto"]:
+        r = pipeline.run_stereo(exp, method=m, n_boot=0, progress=False)
+        zt = validation.true_height_at(truth, r.pts[:, 0])
+        e = validation.height_errors(r.z_um, zt, r.xyz_um[:, :2])
+        rows[m] = (r, e)
+        print(f"{m:>8}: {e['n']:5d} points, RMSE {e['rmse_um'] * 1000:6.1f} nm, p95 {e['p95_um'] * 1000:6.1f} nm")
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for m, (r, e) in rows.items():
+        ax.hist(np.abs(e["err_um"]) * 1000, bins=40, alpha=0.5, label=m, density=True)
+    ax.set_xlabel("|height error| (nm)")
+    ax.set_ylabel("density")
+    ax.legend()
+'''),
+    md("## Tracking"),
+    code('''
+if truth is not None and exp.series is not None:
+    tr = pipeline.run_tracking(exp, progress=False)
+    t = tr.tracks
+    true = validation.true_track_positions(truth, t.xy[-1])
+    err = np.hypot(*(t.xy - true).transpose(2, 0, 1))
+    for f in range(t.n_frames):
+        v = t.valid[f]
+        rms = np.sqrt(np.mean(err[f, v] ** 2)) if v.any() else np.nan
+        print(f"frame {f}: {v.sum():4d} valid, RMS error {rms:.3f} px, "
+              f"valid steps with error > 0.5 px: {(err[f, v] > 0.5).sum()}")
 '''),
 ]
 

@@ -1,0 +1,617 @@
+"""The analysis chains behind ``semlab run`` and the notebooks, and the result files.
+
+Stereo (end state)::
+
+    views + correspondences ─► matching (raw / refined / automatic / merged)
+        ─► epipolar (affine F, eight-point F, tilt axis) ─► tilts (experiment, metadata,
+        estimated from 3+ views, or vanishing points) ─► reconstruct.heights_from_tilts
+        ─► surface (reference plane, z, 1σ) ─► points3d.csv, calibration.json
+
+Series (during the test)::
+
+    frames ─► seeds (Shi–Tomasi corners in the last frame, stereo points registered into it)
+        ─► tracking.track_reverse ─► displacements ─► strain ─► tracks.csv,
+        displacements.csv, strain.npz
+
+Each step is a function of semlab's modules; this file only chains them and writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import GeometryError, SemlabError
+
+#: Tilt-axis deviations from the image y axis smaller than this are treated as zero.
+AXIS_TOLERANCE_DEG = 0.2
+#: 1σ error assumed for hand clicks that were not refined (pixels).
+RAW_CLICK_SIGMA_PX = 0.5
+
+
+@dataclass
+class StereoResult:
+    """Heights from the end-state views.
+
+    Attributes
+    ----------
+    point_id : (N,) int
+    pts : (N, V, 2) float
+        Matched (x, y) pixel positions in every view.
+    kind : (N,) str
+        ``"click"`` (refined or raw hand clicks) or ``"auto"`` (automatic matching).
+    crack_id : (N,) int
+        -1 where the point is on no crack.
+    xyz_um : (N, 3) float
+        Material (x, y) and height z above the reference plane, µm (z > 0 extrusion).
+    z_err_um : (N,) float
+        1σ height uncertainty (matching and bootstrap combined).
+    sigma_px : (N,) float
+        1σ matching error per point, pixels (NaN where unknown).
+    tilt_deg : (V,) float
+    tilt_source : str
+        ``experiment``, ``metadata``, ``estimated`` or ``vanishing_points``.
+    tilt_sigma_deg : (V,) float
+    tilt_axis_deg : float
+        Tilt-axis direction in view 0 used for the reconstruction (90 = image y).
+    calibration : dict
+        JSON-ready: F matrices, epipoles, vanishing-point K and rotations, tilts.
+    method : str
+    notes : list of str
+    """
+
+    point_id: np.ndarray
+    pts: np.ndarray
+    kind: np.ndarray
+    crack_id: np.ndarray
+    xyz_um: np.ndarray
+    z_err_um: np.ndarray
+    sigma_px: np.ndarray
+    tilt_deg: np.ndarray
+    tilt_source: str
+    tilt_sigma_deg: np.ndarray
+    tilt_axis_deg: float
+    calibration: dict
+    method: str
+    notes: list = field(default_factory=list)
+
+    @property
+    def z_um(self):
+        """Heights above the reference plane, µm."""
+        return self.xyz_um[:, 2]
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return None if not np.isfinite(obj) else float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    return obj
+
+
+# ------------------------------------------------------------------------------ stereo steps
+def match_views(views, clicks=None, method="auto", progress=True, **kw):
+    """Correspondences between the views by the chosen method.
+
+    Parameters
+    ----------
+    views : list of (H, W) arrays
+    clicks : (N, V, 2) array or None
+        Hand-clicked points.
+    method : {"raw", "refined", "auto", "merged"}
+        ``raw``: the clicks as they are (the reference paper's method); ``refined``: clicks
+        refined by sub-pixel matching; ``auto``: automatic matching only; ``merged``:
+        refined clicks plus automatic points.
+
+    Returns
+    -------
+    pts (M, V, 2), kind (M,) str, sigma_px (M,), index into clicks (M,) int (-1 for auto)
+    """
+    from . import matching
+
+    if method in ("raw", "refined") and clicks is None:
+        raise SemlabError(f"method {method!r} needs hand-clicked correspondences; the experiment "
+                          "has none (add [stereo] correspondences, or use method='auto')")
+    if method == "raw":
+        n = len(clicks)
+        return clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n)
+    parts = []
+    if method in ("refined", "merged") and clicks is not None:
+        r = matching.refine_correspondences(views, clicks, **kw.get("refine", {}))
+        ok = np.asarray(r.valid)
+        parts.append((r.pts[ok], np.array(["click"] * ok.sum()), r.sigma_px[ok], np.flatnonzero(ok)))
+        if (~ok).any():
+            warnings.warn(f"{(~ok).sum()} clicked points could not be refined and were left out "
+                          f"({', '.join(sorted(set(map(str, np.asarray(r.reason)[~ok]))))})",
+                          stacklevel=2)
+    if method in ("auto", "merged"):
+        a = matching.auto_match(views, progress=progress, **kw.get("auto", {}))
+        ok = np.asarray(a.valid)
+        apts = a.pts[ok]
+        if parts:  # drop automatic points that duplicate a clicked one
+            cp = parts[0][0][:, 0]
+            if len(cp):
+                d = np.min(np.hypot(*(apts[:, None, 0, :] - cp[None, :, :]).transpose(2, 0, 1)), axis=1)
+                keep = d > 3.0
+            else:
+                keep = np.ones(len(apts), bool)
+            apts = apts[keep]
+            asig = a.sigma_px[ok][keep]
+        else:
+            asig = a.sigma_px[ok]
+        parts.append((apts, np.array(["auto"] * len(apts)), asig, np.full(len(apts), -1)))
+    if not parts:
+        raise SemlabError(f"unknown matching method {method!r}; use raw, refined, auto or merged")
+    pts = np.concatenate([p[0] for p in parts])
+    kind = np.concatenate([p[1] for p in parts])
+    sig = np.concatenate([p[2] for p in parts]).astype(float)
+    idx = np.concatenate([p[3] for p in parts]).astype(int)
+    if len(pts) < 4:
+        raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; add "
+                            "clicks or use automatic matching")
+    return pts, kind, sig, idx
+
+
+def epipolar_summary(pts):
+    """Affine and eight-point F between view 0 and each other view, with the tilt axis.
+
+    Returns a JSON-ready dict; the eight-point F is None (with the reason) when it is
+    undetermined, which is the normal case for affine SEM views of a nearly flat surface.
+    """
+    from . import epipolar
+
+    out = {"pairs": []}
+    for j in range(1, pts.shape[1]):
+        x0, x1 = pts[:, 0], pts[:, j]
+        pair = {"views": [0, j]}
+        try:
+            Fa = epipolar.fundamental_affine(x0, x1)
+            e0, e1 = epipolar.epipoles(Fa)
+            axis, line = epipolar.affine_tilt_axis(Fa)
+            pair.update(F_affine=Fa, epipoles_affine=[e0, e1], tilt_axis_deg=axis,
+                        epipolar_line_deg=line,
+                        sampson_affine_px_median=float(np.median(np.abs(
+                            epipolar.sampson_distance(Fa, x0, x1)))))
+        except GeometryError as exc:
+            # with little relief and noisy clicks the affine F is undetermined: keep the
+            # stage convention (tilt axis along image y) and say so
+            pair.update(F_affine=None, F_affine_error=str(exc), tilt_axis_deg=[90.0, 90.0])
+        try:
+            F8 = epipolar.fundamental_8point(x0, x1)
+            e0, e1 = epipolar.epipoles(F8)
+            pair.update(F_8point=F8, epipoles_8point=[e0, e1],
+                        sampson_8point_px_median=float(np.median(np.abs(epipolar.sampson_distance(F8, x0, x1)))))
+        except GeometryError as exc:
+            pair.update(F_8point=None, F_8point_error=str(exc))
+        out["pairs"].append(pair)
+    return out
+
+
+def vanishing_summary(lines):
+    """K, rotations and relative rotations from the line families (JSON-ready), or the error."""
+    from . import vanishing
+
+    try:
+        cal = vanishing.calibrate_views(lines)
+    except SemlabError as exc:
+        return {"error": str(exc)}, None
+    d = {"K": cal.K, "focal_px": cal.focal_px, "principal_point_px": cal.principal_point,
+         "families": list(cal.families), "R": cal.R, "vanishing_points": cal.vps,
+         "relative_R": cal.relative_R, "relative_axis": cal.axis,
+         "relative_angle_deg": cal.angle_deg, "relative_euler_zyx_deg": cal.euler_zyx_deg,
+         "line_residual_px_rms": [float(np.sqrt(np.mean(np.concatenate(list(r.values())) ** 2)))
+                                  for r in cal.residuals_px]}
+    return d, cal
+
+
+def choose_tilts(exp, pts, lines_cal=None, progress=True):
+    """The stage tilt of each view and where it came from.
+
+    Order of preference: experiment.toml, the images' SEM metadata, estimation from 3+ views
+    (:func:`semlab.reconstruct.estimate_tilts`), the vanishing-point relative rotation (for
+    two views, split symmetrically about 0°: only the difference is observable).
+
+    Returns
+    -------
+    tilt_deg (V,), source str, tilt_sigma_deg (V,)
+    """
+    from . import reconstruct
+
+    st = exp.stereo
+    v = len(st.view_paths)
+    if st.tilt_deg is not None:
+        return np.asarray(st.tilt_deg, float), st.tilt_source, np.zeros(v)
+    if v >= 3:
+        est = reconstruct.estimate_tilts(pts, exp.pixel_size_um, progress=progress)
+        return np.asarray(est.tilt_deg), "estimated", np.asarray(est.tilt_sigma_deg)
+    if lines_cal is not None:
+        d = reconstruct.tilt_from_rotation(lines_cal.relative_R[1])
+        d = float(np.asarray(d).ravel()[0])
+        return np.array([-d / 2, d / 2]), "vanishing_points", np.zeros(2)
+    raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
+
+
+def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
+    """Heights of the end-state surface from the experiment's views.
+
+    Parameters
+    ----------
+    exp : semlab.experiment.Experiment
+    method : {"raw", "refined", "auto", "merged"}, optional
+        Default: ``merged`` when the experiment has correspondences, else ``auto``.
+    n_boot : int
+        Bootstrap resamples for the height uncertainty.
+
+    Returns
+    -------
+    StereoResult
+    """
+    from . import reconstruct, surface
+
+    if exp.stereo is None:
+        raise SemlabError(f"{exp.toml_path}: no [stereo] table, so no heights to compute")
+    views = exp.views()
+    corr = exp.correspondences()
+    clicks = None if corr is None else corr.pts
+    method = method or ("merged" if clicks is not None else "auto")
+    pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress, **match_kw)
+    notes = []
+    calib = {"pixel_size_um": exp.pixel_size_um, "pixel_size_source": exp.pixel_size_source,
+             "camera": exp.stereo.camera, "method": method, "n_points": int(len(pts))}
+    epi = epipolar_summary(pts)
+    calib["epipolar"] = epi
+    lines = exp.lines()
+    lines_cal = None
+    if lines is not None:
+        calib["vanishing"], lines_cal = vanishing_summary(lines)
+    axis = float(epi["pairs"][0]["tilt_axis_deg"][0])
+    if abs(((axis - 90.0 + 90.0) % 180.0) - 90.0) < AXIS_TOLERANCE_DEG:
+        axis_used = 90.0
+    else:
+        axis_used = axis
+        notes.append(f"tilt axis at {axis:.2f}° in the image (not along y): coordinates rotated")
+    tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
+    if exp.stereo.camera == "perspective":
+        notes.append("camera = perspective: heights still use the affine parallax model, which is "
+                     "exact for SEM at these magnifications; K and R from vanishing points are "
+                     "reported in calibration.json")
+    rec = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um, tilt_axis_deg=axis_used)
+    plane = surface.fit_reference_plane(rec.xyz_um)
+    z = surface.heights_above_plane(rec.xyz_um, plane)
+    xyz = np.column_stack([rec.xyz_um[:, :2], z])
+    # raw clicks carry no matching estimate: assume the typical hand-click error
+    sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
+    z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
+    if n_boot:
+        sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot, seed=seed,
+                                             tilt_axis_deg=axis_used, progress=progress)
+        z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
+    calib.update(tilt_deg=tilt, tilt_source=tilt_source, tilt_sigma_deg=tilt_sigma,
+                 tilt_axis_deg=axis_used, reference_plane=np.asarray(plane))
+    n = len(pts)
+    clicked = idx >= 0
+    point_id = np.empty(n, int)
+    crack = np.full(n, -1)
+    start = 0
+    if corr is not None:
+        point_id[clicked] = np.asarray(corr.point_id)[idx[clicked]]
+        if corr.crack_id is not None:
+            crack[clicked] = np.asarray(corr.crack_id)[idx[clicked]]
+        start = int(np.max(corr.point_id)) + 1 if len(corr.point_id) else 0
+    point_id[~clicked] = start + np.arange((~clicked).sum())
+    return StereoResult(point_id=point_id.astype(int), pts=pts, kind=kind, crack_id=crack.astype(int),
+                        xyz_um=xyz, z_err_um=z_err, sigma_px=sigma_px, tilt_deg=np.asarray(tilt),
+                        tilt_source=tilt_source, tilt_sigma_deg=np.asarray(tilt_sigma),
+                        tilt_axis_deg=axis_used, calibration=calib, method=method, notes=notes)
+
+
+def write_stereo_results(result, out_dir, overwrite=False):
+    """Write ``points3d.csv`` and ``calibration.json`` into ``out_dir``.
+
+    ``points3d.csv`` columns: ``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um`` with pixel
+    coordinates in view 0.
+    """
+    from . import surface
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = out / "points3d.csv"
+    surface.write_points3d_csv(p, result.point_id, result.pts[:, 0], result.xyz_um,
+                               result.z_err_um, overwrite=overwrite)
+    c = out / "calibration.json"
+    if c.exists() and not overwrite:
+        raise SemlabError(f"{c}: exists already; write results to a new folder")
+    cal = dict(result.calibration)
+    cal["notes"] = list(result.notes)
+    c.write_text(json.dumps(_jsonable(cal), indent=1))
+    return p, c
+
+
+# ------------------------------------------------------------------------------ series steps
+@dataclass
+class TrackingResult:
+    """Tracks, displacements and strain from the frontal series.
+
+    Attributes
+    ----------
+    tracks : semlab.tracking.Tracks
+        Every step with its forward–backward error and valid flag, by chronological frame.
+    seed : (N,) str
+        ``"corner"`` (Shi–Tomasi in the last frame) or ``"stereo"`` (a stereo point
+        registered into the last frame).
+    stereo_index : (N,) int
+        Index into the stereo result of a stereo-seeded track, -1 for corners.
+    z_um : (N,) float
+        Height of stereo-seeded tracks (NaN for corners).
+    frame_from : (N,) int
+        Earliest frame where the track is valid (-1: never valid besides the last frame).
+    dx_um, dy_um, d_um : (N,) float
+        Displacement from ``frame_from`` to the last frame (NaN where ``frame_from`` = -1).
+    registration : dict
+        Stereo view 0 → last frame registration (``A`` (2, 3), ``residual_px``), or empty.
+    strain : dict
+        Sparse and dense strain results (see :func:`strain_fields_from_tracks`).
+    pixel_size_um : float
+    cycles : (F,) float or None
+    """
+
+    tracks: object
+    seed: np.ndarray
+    stereo_index: np.ndarray
+    z_um: np.ndarray
+    frame_from: np.ndarray
+    dx_um: np.ndarray
+    dy_um: np.ndarray
+    d_um: np.ndarray
+    registration: dict
+    strain: dict
+    pixel_size_um: float
+    cycles: np.ndarray | None = None
+
+
+def earliest_valid_frame(valid):
+    """Per track, the earliest frame whose step is valid, ignoring the reference (last) frame.
+
+    Parameters
+    ----------
+    valid : (F, N) bool array
+
+    Returns
+    -------
+    (N,) int, -1 where only the reference frame is valid.
+    """
+    v = np.asarray(valid, bool)[:-1]
+    first = np.argmax(v, axis=0)
+    return np.where(v.any(axis=0), first, -1)
+
+
+def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=40.0,
+                              grid_step_px=16, heights=None, progress=False):
+    """Strain between ``ref_frame`` and the last frame, sparse and dense.
+
+    Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
+    length ``gauge_length_px`` on the tracks valid in both frames. Dense: a grid of subsets in
+    the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
+    tracks); with ``U(x)`` the displacement as a function of end-state position,
+    ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
+    (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
+    out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
+    polished surface) is added.
+
+    Returns
+    -------
+    dict of arrays: ``ref_frame``, ``gauge_length_um``, sparse ``pts_px`` (M, 2) last-frame
+    positions, ``E_lsq`` (M, 2, 2), ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
+    ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
+    ``max_shear``, ``zncc``, and ``E_surface`` when heights are given.
+    """
+    from scipy.interpolate import griddata
+
+    from . import strain as st
+    from .subset import icgn_refine
+
+    s = float(pixel_size_um)
+    ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
+    out = {"ref_frame": int(ref_frame), "gauge_length_um": gauge_length_px * s}
+    p_ref, p_end = xy[ref_frame][ok], xy[-1][ok]
+    if ok.sum() < 6:
+        raise SemlabError(f"only {int(ok.sum())} tracks are valid in both frame {ref_frame} and the "
+                          "last frame: too few for strain (need 6)")
+    disp_um = (p_end - p_ref) * s
+    G_lsq = st.gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s)
+    G_tri, tri = st.gradient_from_triangles(p_ref * s, disp_um)
+    out.update(pts_px=p_end, E_lsq=st.green_lagrange(G_lsq), tri=tri, E_tri=st.green_lagrange(G_tri))
+
+    # dense: subsets on a grid of the last frame, matched into the reference frame
+    h, w = frames[-1].shape
+    half = 10
+    gx = np.arange(half + 2, w - half - 2, grid_step_px, dtype=float)
+    gy = np.arange(half + 2, h - half - 2, grid_step_px, dtype=float)
+    GX, GY = np.meshgrid(gx, gy)
+    grid = np.column_stack([GX.ravel(), GY.ravel()])
+    back = p_ref - p_end  # where end-state points were in the reference frame
+    guess = np.column_stack([griddata(p_end, back[:, k], grid, method="linear") for k in (0, 1)])
+    near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
+    guess = np.where(np.isfinite(guess), guess, near)
+    r = icgn_refine(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
+                    progress=progress)
+    u = (grid - r.pts) * s  # U(x) = x_end - X_ref, µm
+    u[~r.converged] = np.nan
+    ux = u[:, 0].reshape(GX.shape)
+    uy = u[:, 1].reshape(GX.shape)
+    G = st.gradient_from_field(ux, uy, grid_step_px * s)  # ∂U/∂x (end-state coordinates)
+    eye = np.eye(2)
+    finite = np.all(np.isfinite(G), axis=(-2, -1))
+    Fd = np.full(G.shape, np.nan)
+    Fd[finite] = np.linalg.inv(eye - G[finite])
+    E = st.green_lagrange(Fd - eye)
+    e1, e2, ang = st.principal_strains(E)
+    out.update(grid_x_px=gx, grid_y_px=gy, ux_um=ux, uy_um=uy, E=E, e1=e1, e2=e2, angle_deg=ang,
+               max_shear=st.max_shear(E), zncc=r.zncc.reshape(GX.shape))
+    if heights is not None:
+        z = heights(GX, GY)
+        dzdy, dzdx = np.gradient(z, grid_step_px * s)
+        out["E_surface"] = st.surface_green_lagrange(Fd - eye, np.stack([dzdx, dzdy], axis=-1))
+    return out
+
+
+def stereo_points(exp, out_dir=None, progress=False, **kw):
+    """View-0 positions and heights of the stereo points: read from ``out_dir/points3d.csv``
+    when an earlier step wrote it, else computed with :func:`run_stereo`.
+
+    Returns
+    -------
+    (pts_view0 (N, 2) pixels, z_um (N,)) or None when the experiment has no [stereo].
+    """
+    if exp.stereo is None:
+        return None
+    if out_dir is not None and (Path(out_dir) / "points3d.csv").is_file():
+        from .surface import read_points3d_csv
+
+        d = read_points3d_csv(Path(out_dir) / "points3d.csv")
+        return np.column_stack([d["x_px"], d["y_px"]]), np.asarray(d["z_um"], float)
+    res = run_stereo(exp, progress=progress, **kw)
+    return res.pts[:, 0], res.z_um
+
+
+def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
+                 gauge_length_px=40.0, progress=True):
+    """Track points backwards through the series and derive displacements and strain.
+
+    Parameters
+    ----------
+    exp : semlab.experiment.Experiment
+    stereo : (pts_view0 (M, 2), z_um (M,)), optional
+        Stereo points (see :func:`stereo_points`): registered from view 0 into the last frame
+        and tracked too.
+    method : {"lk", "subset"}
+        Pyramidal Lucas–Kanade, or the DIC-grade IC-GN subset matching.
+    corner_kw, track_kw : dict, optional
+        Passed to :func:`semlab.tracking.shi_tomasi_seeds` / :func:`~semlab.tracking.track_reverse`.
+
+    Returns
+    -------
+    TrackingResult
+    """
+    from . import tracking
+
+    if exp.series is None:
+        raise SemlabError(f"{exp.toml_path}: no [series] table, so nothing to track")
+    frames = exp.frames(progress=progress)
+    if len(frames) < 2:
+        raise SemlabError(f"{exp.toml_path}: the series has {len(frames)} frame; tracking needs 2 or more")
+    corners = tracking.shi_tomasi_seeds(frames[-1], name=exp.series.frame_paths[-1].name,
+                                        **(corner_kw or {}))
+    seeds, kinds, sidx = [corners], [np.array(["corner"] * len(corners))], [np.full(len(corners), -1)]
+    registration = {}
+    if stereo is not None and exp.stereo is not None:
+        mapped, A, residual = tracking.register_points(exp.views()[0], frames[-1], stereo[0])
+        h, w = frames[-1].shape
+        inside = ((mapped[:, 0] > 12) & (mapped[:, 0] < w - 13) & (mapped[:, 1] > 12)
+                  & (mapped[:, 1] < h - 13))
+        seeds.append(mapped[inside])
+        kinds.append(np.array(["stereo"] * inside.sum()))
+        sidx.append(np.flatnonzero(inside))
+        registration = {"A": A, "residual_px": float(np.atleast_1d(residual).mean())}
+    seeds = np.concatenate(seeds)
+    kind = np.concatenate(kinds)
+    stereo_index = np.concatenate(sidx)
+    tracks = tracking.track_reverse(frames, seeds, method=method, seed_kind=kind,
+                                    progress=progress, **(track_kw or {}))
+    s = exp.pixel_size_um
+    first = earliest_valid_frame(tracks.valid)
+    n = tracks.n_tracks
+    start = tracks.xy[np.clip(first, 0, None), np.arange(n)]
+    d = (tracks.xy[-1] - start) * s
+    d[first < 0] = np.nan
+    z = np.full(n, np.nan)
+    if stereo is not None:
+        z[stereo_index >= 0] = np.asarray(stereo[1])[stereo_index[stereo_index >= 0]]
+    # strain between the earliest frame that still has enough valid tracks and the last
+    counts = tracks.valid[:-1].sum(axis=1)
+    enough = np.flatnonzero(counts >= max(20, 0.2 * n))
+    strain = {}
+    if len(enough):
+        heights = None
+        if stereo is not None and (stereo_index >= 0).sum() >= 10:
+            from scipy.interpolate import griddata
+
+            pz = tracks.xy[-1][stereo_index >= 0]
+            zz = z[stereo_index >= 0]
+
+            def heights(x, y):
+                zi = griddata(pz, zz, (x, y), method="linear")
+                return np.where(np.isfinite(zi), zi, griddata(pz, zz, (x, y), method="nearest"))
+        strain = strain_fields_from_tracks(frames, tracks.xy, tracks.valid, s, int(enough[0]),
+                                           gauge_length_px=gauge_length_px, heights=heights)
+        strain["history"] = tracking_strain_history(tracks, exp.series.cycles, s)
+    else:
+        warnings.warn("no frame before the last has enough valid tracks for strain", stacklevel=2)
+    return TrackingResult(tracks=tracks, seed=kind, stereo_index=stereo_index, z_um=z,
+                          frame_from=first, dx_um=d[:, 0], dy_um=d[:, 1], d_um=np.hypot(d[:, 0], d[:, 1]),
+                          registration=registration, strain=strain, pixel_size_um=s,
+                          cycles=exp.series.cycles)
+
+
+def tracking_strain_history(tracks, cycles, pixel_size_um):
+    """Mean Green–Lagrange strain of every frame relative to the last one (end state).
+
+    The last frame is the reference here because every track is valid in it; the strain of
+    frame f relative to the end is the deformation still to come, plotted against cycles.
+    """
+    from . import strain as st
+
+    cyc = np.arange(tracks.n_frames, dtype=float) if cycles is None else np.asarray(cycles, float)
+    return st.strain_history(tracks.xy, cyc, valid=tracks.valid, ref_frame=tracks.n_frames - 1,
+                             pixel_size_um=pixel_size_um)
+
+
+def write_tracking_results(result, out_dir, overwrite=False):
+    """Write ``tracks.csv``, ``displacements.csv`` and ``strain.npz`` into ``out_dir``.
+
+    ``tracks.csv``: ``track_id,seed,frame,x_px,y_px,fb_error_px,valid`` (frame 0 = earliest).
+    ``displacements.csv``: ``track_id,seed,x_px,y_px,frame_from,dx_um,dy_um,d_um,z_um`` with
+    the last-frame position and the displacement from ``frame_from`` to the last frame
+    (``z_um`` for stereo-seeded tracks, empty otherwise).
+    """
+    from . import tracking
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "tracks.csv", out / "displacements.csv", out / "strain.npz"]
+    for p in paths:
+        if p.exists() and not overwrite:
+            raise SemlabError(f"{p}: exists already; write results to a new folder")
+    tracking.write_tracks_csv(paths[0], result.tracks, seed_kind=result.seed, overwrite=overwrite)
+    xy = result.tracks.xy[-1]
+
+    def fmt(v):
+        return "" if not np.isfinite(v) else f"{v:.6g}"
+
+    rows = ["track_id,seed,x_px,y_px,frame_from,dx_um,dy_um,d_um,z_um"]
+    for i in range(len(result.seed)):
+        rows.append(",".join([str(i), str(result.seed[i]), f"{xy[i, 0]:.4f}", f"{xy[i, 1]:.4f}",
+                              str(int(result.frame_from[i])), fmt(result.dx_um[i]), fmt(result.dy_um[i]),
+                              fmt(result.d_um[i]), fmt(result.z_um[i])]))
+    paths[1].write_text("\n".join(rows) + "\n")
+    flat = {}
+    for k, v in result.strain.items():
+        if isinstance(v, dict):
+            for kk, vv in v.items():
+                flat[f"{k}_{kk}"] = np.asarray(vv)
+        else:
+            flat[k] = np.asarray(v)
+    np.savez_compressed(paths[2], **flat)
+    return paths

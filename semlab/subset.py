@@ -1,0 +1,723 @@
+"""Local sub-pixel image matching of square subsets (digital image correlation engine).
+
+Shared by stereo matching (:mod:`semlab.matching`) and tracking. Everything is vectorised
+over all subsets at once: arrays of shape ``(N, n_pix)`` with ``n_pix = (2 h + 1)²``; the
+only Python loop is over chunks of a few thousand subsets (to bound memory and to use two
+threads).
+
+Two steps:
+
+1. :func:`zncc_match` — integer-pixel search of the zero-normalised cross-correlation
+   (ZNCC) peak, computed for all subsets at once with batched FFTs and box sums, then a
+   sub-pixel peak from a 2D quadratic fit of the 3×3 neighbourhood of the peak.
+2. :func:`icgn_refine` — inverse-compositional Gauss–Newton (IC-GN) refinement of an affine
+   (or translation) subset warp, minimising the zero-normalised sum of squared differences
+   (ZNSSD), which is invariant to an intensity offset and gain between the two images
+   (Baker & Matthews 2004, "Lucas-Kanade 20 years on", IJCV 56(3), section 3.2;
+   Pan, Li & Tong 2013, "Fast, robust and accurate digital image correlation calculation
+   without redundant computations", Exp. Mech. 53, eqs. 1–12). The current image is
+   interpolated with cubic B-splines (Unser 1999, "Splines: a perfect fit for signal and
+   image processing", IEEE SPM 16(6)): prefiltered once with
+   :func:`scipy.ndimage.spline_filter`, then sampled with ``map_coordinates(order=3,
+   prefilter=False)``.
+
+Conventions: images are 2D arrays indexed ``[row, col]``; points are ``(N, 2)`` arrays of
+``(x, y)`` in pixels, x to the right, y down, origin at the centre of the top-left pixel.
+A warp is ``(u, du/dx, du/dy, v, dv/dx, dv/dy)``: a reference point ``X`` near ``pts_ref``
+maps to ``pts_ref + (u, v) + G (X - pts_ref)`` in the current image, with
+``G = [[du/dx, du/dy], [dv/dx, dv/dy]]``.
+
+Reference subsets are centred on the integer pixel nearest to each ``pts_ref`` (no
+interpolation of the reference image, exact gradients of its B-spline interpolant at the
+pixel nodes), and the sub-pixel reference position is carried through the fitted affine
+warp, which is exact under the affine subset model.
+
+Failures are never silent: a subset that leaves an image, has too little texture or does
+not converge gets ``NaN`` positions, ``converged = False`` and a ``reason``.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy import fft as sfft
+from scipy import ndimage
+
+from .errors import ImageError, SemlabError
+
+__all__ = ["SubsetResult", "zncc_match", "icgn_refine", "prefilter_image", "oriented_subset"]
+
+_CHUNK = 512  # subsets per chunk (keeps the (chunk, 6, n_pix) arrays in cache)
+_N_THREADS = max(1, min(2, os.cpu_count() or 1))
+
+# Reason strings (empty string = success).
+OK = ""
+OUTSIDE = "subset leaves the image"
+NO_TEXTURE = "too little texture (singular Hessian)"
+NO_TEXTURE_CUR = "too little texture in the current image"
+DIVERGED = "IC-GN diverged"
+MAX_ITER = "IC-GN did not converge within max_iter"
+NAN_INPUT = "NaN input point"
+SEARCH_EDGE = "ZNCC peak on the edge of the search range"
+
+
+@dataclass(frozen=True)
+class SubsetResult:
+    """Result of :func:`icgn_refine` for ``N`` subsets.
+
+    Attributes
+    ----------
+    pts : (N, 2) float array
+        Matched positions ``(x, y)`` in the current image, pixels; NaN where not converged.
+    warp : (N, 6) float array
+        Affine warp ``(u, du/dx, du/dy, v, dv/dx, dv/dy)`` about ``pts_ref``
+        (``(u, v) = pts - pts_ref``); NaN where not converged.
+    zncc : (N,) float array
+        Zero-normalised cross-correlation at convergence, in [-1, 1] (-1 where undefined).
+    converged : (N,) bool array
+        True where the IC-GN step fell below ``tol_px``.
+    n_iter : (N,) int array
+        IC-GN iterations used.
+    sigma_px : (N, 2) float array
+        Estimated 1σ random error of ``pts`` in x and y, pixels: residual variance times
+        the corresponding diagonal entry of the inverse Gauss–Newton Hessian (propagated to
+        the sub-pixel reference position; corrected for Gaussian pre-smoothing). It does
+        not include interpolation bias. NaN where not converged.
+    reason : (N,) str array
+        Empty where converged, otherwise why not.
+    """
+
+    pts: np.ndarray
+    warp: np.ndarray
+    zncc: np.ndarray
+    converged: np.ndarray
+    n_iter: np.ndarray
+    sigma_px: np.ndarray
+    reason: np.ndarray
+
+    def __len__(self):
+        return len(self.pts)
+
+
+# --------------------------------------------------------------------------- validation
+def _as_image(img, name):
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        raise ImageError(f"{name} is a colour image of shape {a.shape}; convert it to grey "
+                         "(e.g. img.mean(axis=2)) before matching")
+    if a.ndim != 2:
+        raise ImageError(f"{name} must be a 2D grey image, got shape {a.shape}")
+    if min(a.shape) < 8:
+        raise ImageError(f"{name} of shape {a.shape} is too small for subset matching")
+    a = a.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(a)):
+        raise ImageError(f"{name} contains NaN or infinite values; fill or crop them first")
+    return a
+
+
+def _as_points(pts, name, n=None):
+    p = np.asarray(pts, dtype=np.float64)
+    if p.ndim == 1 and p.shape == (2,):
+        p = p[None, :]
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise SemlabError(f"{name} must be an (N, 2) array of (x, y) pixels, got shape "
+                          f"{np.shape(pts)}")
+    if n is not None and len(p) != n:
+        raise SemlabError(f"{name} has {len(p)} points but pts_ref has {n}; give one guess "
+                          "per reference point")
+    return p
+
+
+def _check_int(value, name, lo):
+    if isinstance(value, bool) or not float(value).is_integer() or int(value) < lo:
+        raise SemlabError(f"{name} must be an integer >= {lo}, got {value!r}")
+    return int(value)
+
+
+def _smooth(img, smooth_sigma_px):
+    if smooth_sigma_px is None or smooth_sigma_px == 0:
+        return img
+    if not (np.isfinite(smooth_sigma_px) and smooth_sigma_px > 0):
+        raise SemlabError(f"smooth_sigma_px must be >= 0, got {smooth_sigma_px!r}")
+    return ndimage.gaussian_filter(img, float(smooth_sigma_px), mode="mirror", truncate=3.0)
+
+
+def _smoothing_variance_gain(smooth_sigma_px):
+    """Variance factor ``Σ w²`` of the discrete Gaussian kernel applied to white noise."""
+    if not smooth_sigma_px:
+        return 1.0
+    m = int(np.ceil(3 * smooth_sigma_px)) + 2
+    delta = np.zeros((2 * m + 1, 2 * m + 1))
+    delta[m, m] = 1.0
+    return float(np.sum(_smooth(delta, smooth_sigma_px) ** 2))
+
+
+def prefilter_image(img, smooth_sigma_px=0.0):
+    """Cubic B-spline coefficients of ``img`` (mirror boundary), for repeated sampling.
+
+    Parameters
+    ----------
+    img : (H, W) array
+        Grey image.
+    smooth_sigma_px : float
+        Gaussian pre-smoothing applied first (use the value given to :func:`icgn_refine`).
+
+    Returns
+    -------
+    (H, W) float64 array of B-spline coefficients, to be sampled with
+    ``scipy.ndimage.map_coordinates(coef, ..., order=3, prefilter=False, mode="mirror")``.
+    """
+    a = _smooth(_as_image(img, "img"), smooth_sigma_px)
+    return ndimage.spline_filter(a, order=3, mode="mirror", output=np.float64)
+
+
+# --------------------------------------------------------------------------- ZNCC search
+def zncc_match(ref_img, cur_img, pts_ref, pts_guess, half_window=10, search_px=5):
+    """Integer-pixel ZNCC search plus a sub-pixel quadratic peak, for N subsets at once.
+
+    The ``(2h+1)²`` subset of ``ref_img`` centred on the pixel nearest to each
+    ``pts_ref`` is compared with every window of ``cur_img`` whose centre is within
+    ``±search_px`` (integer pixels, in x and y) of the pixel nearest to ``pts_guess``.
+    The correlation surface is computed with batched FFTs and box sums; its peak is refined
+    by the least-squares 2D quadratic through the 3×3 neighbourhood (falling back to two
+    1D parabolas where that quadratic has no maximum).
+
+    Parameters
+    ----------
+    ref_img, cur_img : (H, W) arrays
+        Reference and current grey images (any real dtype; may have different sizes).
+    pts_ref : (N, 2) array
+        Reference points ``(x, y)`` in pixels in ``ref_img``.
+    pts_guess : (N, 2) array
+        Initial guesses ``(x, y)`` in pixels of the same points in ``cur_img``.
+    half_window : int
+        Subset half size ``h`` (subset is ``(2h+1)²`` pixels), >= 2.
+    search_px : int
+        Search radius in pixels, >= 1.
+
+    Returns
+    -------
+    pts : (N, 2) array
+        Matched ``(x, y)`` pixels in ``cur_img`` (the sub-pixel offset of ``pts_ref`` from
+        its nearest pixel is carried over as a pure translation). NaN where the subset or
+        every candidate window leaves an image, where a point is NaN, where the subset has
+        no texture, or where the peak lies on the edge of the search range (the true match
+        may be further away: increase ``search_px``).
+    zncc : (N,) array
+        Peak ZNCC in [-1, 1]; -1 where undefined (window outside an image, NaN point,
+        flat subset).
+
+    Raises
+    ------
+    ImageError
+        If an image is not 2D, too small or not finite.
+    SemlabError
+        If the point arrays have the wrong shape or the window sizes are invalid.
+    """
+    ref = _as_image(ref_img, "ref_img")
+    cur = _as_image(cur_img, "cur_img")
+    h = _check_int(half_window, "half_window", 2)
+    s = _check_int(search_px, "search_px", 1)
+    pr = _as_points(pts_ref, "pts_ref")
+    pg = _as_points(pts_guess, "pts_guess", len(pr))
+    n = len(pr)
+    out_pts = np.full((n, 2), np.nan)
+    out_z = np.full(n, -1.0)
+    if n == 0:
+        return out_pts, out_z
+
+    H0, W0 = ref.shape
+    H1, W1 = cur.shape
+    finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
+    R = np.zeros((n, 2), np.intp)
+    G = np.zeros((n, 2), np.intp)
+    R[finite] = np.rint(pr[finite]).astype(np.intp)
+    G[finite] = np.rint(pg[finite]).astype(np.intp)
+    ok = (finite & (R[:, 0] >= h) & (R[:, 0] <= W0 - 1 - h) & (R[:, 1] >= h)
+          & (R[:, 1] <= H0 - 1 - h)
+          & (G[:, 0] >= 0) & (G[:, 0] <= W1 - 1) & (G[:, 1] >= 0) & (G[:, 1] <= H1 - 1))
+
+    k = 2 * h + 1
+    S = k + 2 * s  # search region side
+    m = h + s
+    # Pad the current image so every region can be cut; a mask tells valid windows.
+    curp = np.pad(cur - cur.mean(), m, mode="constant")
+    maskp = np.pad(np.ones_like(cur), m, mode="constant")
+    reg_view = sliding_window_view(curp, (S, S))
+    msk_view = sliding_window_view(maskp, (S, S))
+    tpl_view = sliding_window_view(ref, (k, k))
+
+    idx = np.flatnonzero(ok)
+    for c0 in range(0, len(idx), 4 * _CHUNK):
+        ii = idx[c0:c0 + 4 * _CHUNK]
+        # Region top-left in padded coordinates: (G - m) + m = G.
+        reg = reg_view[G[ii, 1], G[ii, 0]]                      # (n, S, S)
+        msk = msk_view[G[ii, 1], G[ii, 0]]
+        tpl = tpl_view[R[ii, 1] - h, R[ii, 0] - h]              # (n, k, k)
+        z, peak = _zncc_surface(tpl, reg, msk, k, s)
+        out_z[ii] = np.where(np.isfinite(peak[:, 0]), z, -1.0)
+        good = np.all(np.isfinite(peak), 1)
+        frac = pr[ii] - R[ii]
+        out_pts[ii] = np.where(good[:, None], G[ii] + peak + frac, np.nan)
+    return out_pts, out_z
+
+
+def _box_sum(a, k):
+    """Sums of all k×k windows of a batch of images a (n, S, S) -> (n, S-k+1, S-k+1)."""
+    c = np.cumsum(np.cumsum(a, axis=1), axis=2)
+    c = np.pad(c, ((0, 0), (1, 0), (1, 0)))
+    return c[:, k:, k:] - c[:, :-k, k:] - c[:, k:, :-k] + c[:, :-k, :-k]
+
+
+def _zncc_surface(tpl, reg, msk, k, s):
+    """ZNCC of templates (n,k,k) over regions (n,S,S); returns peak value and sub-pixel
+    offset (n, 2) = (dx, dy) of the peak relative to the region centre (NaN if invalid)."""
+    n, S = reg.shape[0], reg.shape[1]
+    P = k * k
+    t = tpl - tpl.mean(axis=(1, 2), keepdims=True)
+    tn = np.sqrt(np.einsum("nij,nij->n", t, t))
+    # Correlation sum_xi t(xi) reg(xi + d) for all offsets via FFT (t is zero-mean, so the
+    # window mean drops out of the numerator).
+    shape = (S, S)
+    Ft = sfft.rfft2(t, s=shape, axes=(1, 2))
+    Fr = sfft.rfft2(reg, s=shape, axes=(1, 2))
+    cc = sfft.irfft2(Fr * np.conj(Ft), s=shape, axes=(1, 2))[:, :2 * s + 1, :2 * s + 1]
+    bs = _box_sum(reg, k)
+    bs2 = _box_sum(reg * reg, k)
+    cnt = _box_sum(msk, k)
+    var = bs2 - bs * bs / P
+    tiny = 1e-12 * (np.abs(bs2).max(axis=(1, 2), keepdims=True) + 1e-300)
+    valid = (cnt > P - 0.5) & (var > tiny)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = cc / (tn[:, None, None] * np.sqrt(np.where(valid, var, 1.0)))
+    z = np.where(valid & (tn[:, None, None] > 0), z, -np.inf)
+    flat = z.reshape(n, -1)
+    am = np.argmax(flat, axis=1)
+    zmax = flat[np.arange(n), am]
+    iy, ix = np.divmod(am, 2 * s + 1)
+    peak = np.full((n, 2), np.nan)
+    has = np.isfinite(zmax)
+    inner = has & (ix > 0) & (ix < 2 * s) & (iy > 0) & (iy < 2 * s)
+    if np.any(inner):
+        j = np.flatnonzero(inner)
+        nb = np.stack([z[j, iy[j] + dy, ix[j] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
+                      axis=1).reshape(-1, 3, 3)
+        nbok = np.all(np.isfinite(nb), axis=(1, 2))
+        nb = np.where(nbok[:, None, None], nb, 0.0)
+        d = _quadratic_peak(nb)
+        d[~nbok] = np.nan
+        peak[j, 0] = ix[j] - s + d[:, 0]
+        peak[j, 1] = iy[j] - s + d[:, 1]
+    zmax = np.where(has, np.clip(zmax, -1.0, 1.0), -1.0)
+    return zmax, peak
+
+
+def _quadratic_peak(c):
+    """Sub-pixel maximum (dx, dy) of 3×3 samples c (n, 3, 3) by least-squares 2D quadratic.
+
+    Falls back to independent 1D parabolas where the fitted quadratic is not concave or its
+    maximum is more than one pixel away; offsets are clipped to ±0.5 px then.
+    """
+    gx = (c[:, :, 2] - c[:, :, 0]).sum(1) / 6.0
+    gy = (c[:, 2, :] - c[:, 0, :]).sum(1) / 6.0
+    gxx = (c[:, :, 0] - 2 * c[:, :, 1] + c[:, :, 2]).sum(1) / 3.0
+    gyy = (c[:, 0, :] - 2 * c[:, 1, :] + c[:, 2, :]).sum(1) / 3.0
+    gxy = (c[:, 2, 2] - c[:, 2, 0] - c[:, 0, 2] + c[:, 0, 0]) / 4.0
+    det = gxx * gyy - gxy * gxy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx = (-gyy * gx + gxy * gy) / det
+        dy = (gxy * gx - gxx * gy) / det
+        ok = (gxx < 0) & (det > 0) & (np.abs(dx) <= 1) & (np.abs(dy) <= 1)
+        # 1D parabolas through the central row / column
+        px = c[:, 1, 0] - 2 * c[:, 1, 1] + c[:, 1, 2]
+        py = c[:, 0, 1] - 2 * c[:, 1, 1] + c[:, 2, 1]
+        fx = np.where(px < 0, 0.5 * (c[:, 1, 0] - c[:, 1, 2]) / px, 0.0)
+        fy = np.where(py < 0, 0.5 * (c[:, 0, 1] - c[:, 2, 1]) / py, 0.0)
+    fx = np.clip(np.nan_to_num(fx), -0.5, 0.5)
+    fy = np.clip(np.nan_to_num(fy), -0.5, 0.5)
+    return np.stack([np.where(ok, dx, fx), np.where(ok, dy, fy)], axis=1)
+
+
+# --------------------------------------------------------------------------- IC-GN
+def oriented_subset(half_length, half_width, angle_deg):
+    """Integer pixel offsets of a rectangle rotated by ``angle_deg``.
+
+    Parameters
+    ----------
+    half_length, half_width : float
+        Half sizes (pixels) along and across the direction ``angle_deg``.
+    angle_deg : float
+        Direction of the long side, degrees from the image x axis (toward +y, i.e.
+        clockwise on screen since y points down).
+
+    Returns
+    -------
+    (P, 2) int array of ``(dx, dy)`` offsets, for ``icgn_refine(subset_offsets=...)``.
+    """
+    if not (half_length > 0 and half_width > 0):
+        raise SemlabError("half_length and half_width must be > 0")
+    a = np.deg2rad(angle_deg)
+    r = int(np.ceil(np.hypot(half_length, half_width)))
+    oy, ox = np.mgrid[-r:r + 1, -r:r + 1]
+    along = ox * np.cos(a) + oy * np.sin(a)
+    across = -ox * np.sin(a) + oy * np.cos(a)
+    keep = (np.abs(along) <= half_length + 1e-9) & (np.abs(across) <= half_width + 1e-9)
+    return np.column_stack([ox[keep], oy[keep]])
+
+
+def _spline_gradients(coef):
+    """Exact gradients of the cubic B-spline interpolant at the pixel nodes.
+
+    With coefficients ``c``, ``f(j) = (c[j-1] + 4 c[j] + c[j+1]) / 6`` and
+    ``f'(j) = (c[j+1] - c[j-1]) / 2`` along each axis (Unser 1999, eq. 5).
+    """
+    smooth = np.array([1.0, 4.0, 1.0]) / 6.0
+    deriv = np.array([-0.5, 0.0, 0.5])
+    gx = ndimage.correlate1d(ndimage.correlate1d(coef, deriv, axis=1, mode="mirror"),
+                             smooth, axis=0, mode="mirror")
+    gy = ndimage.correlate1d(ndimage.correlate1d(coef, deriv, axis=0, mode="mirror"),
+                             smooth, axis=1, mode="mirror")
+    return gx, gy
+
+
+def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affine",
+                max_iter=30, tol_px=1e-4, init_warp=None, *, smooth_sigma_px=0.0,
+                subset_offsets=None, ref_prefiltered=None, cur_prefiltered=None,
+                progress=False):
+    """Sub-pixel subset matching by inverse-compositional Gauss–Newton with ZNSSD.
+
+    For each point, the ``(2h+1)²`` subset of ``ref_img`` centred on the pixel nearest to
+    ``pts_ref`` is matched in ``cur_img`` by minimising the zero-normalised SSD
+
+    ``C(p) = Σ [ (f - f̄)/Δf - (g(W(ξ; p)) - ḡ)/Δg ]²``
+
+    over an affine (6 parameters) or translation (2 parameters) warp ``W``, which is
+    insensitive to an offset and a gain of intensity between the images. The IC-GN update
+    ``W(p) ← W(p) ∘ W(Δp)⁻¹`` with ``Δp = -H⁻¹ Σ Jᵀ [(f - f̄) - Δf/Δg (g - ḡ)]`` uses the
+    steepest-descent images ``J = ∇f ∂W/∂p`` and Hessian ``H = Σ JᵀJ`` of the reference
+    subset, computed once (Baker & Matthews 2004, section 3.2; Pan et al. 2013, eqs. 5–10).
+    ``cur_img`` is interpolated with cubic B-splines. At convergence ``ZNCC = 1 - C/2``.
+
+    Parameters
+    ----------
+    ref_img, cur_img : (H, W) arrays
+        Reference and current grey images.
+    pts_ref : (N, 2) array
+        Reference points ``(x, y)`` in pixels in ``ref_img`` (sub-pixel allowed).
+    pts_guess : (N, 2) array
+        Initial guesses of the matched positions ``(x, y)`` in ``cur_img``, pixels (within
+        a few tenths of a pixel is best; e.g. from :func:`zncc_match`).
+    half_window : int
+        Subset half size ``h``; subsets are ``(2h+1)²`` pixels.
+    warp : {"affine", "translation"}
+        Subset shape function. With ``"translation"`` only ``u, v`` are estimated and the
+        gradient terms of ``init_warp`` (default zero) are held fixed.
+    max_iter : int
+        Maximum IC-GN iterations.
+    tol_px : float
+        Convergence when ``sqrt(Δu² + Δv² + h²(Δu_x² + Δu_y² + Δv_x² + Δv_y²)) < tol_px``.
+    init_warp : (N, 6) or (6,) array, optional
+        Initial warps ``(u, du/dx, du/dy, v, dv/dx, dv/dy)``; only the gradient terms are
+        used (the translation comes from ``pts_guess``).
+    smooth_sigma_px : float
+        Standard deviation (pixels) of a Gaussian low-pass applied to both images first
+        (0 = none). About 0.8 px removes most of the noise-induced bias of the
+        interpolation (a pull of the estimate toward half-pixel shifts that grows with the
+        noise variance) at the cost of ~10 % more random error (Pan 2013, "Bias error
+        reduction of digital image correlation using Gaussian pre-filtering", Opt. Lasers
+        Eng. 51(10)). Exact translations are unaffected (smoothing commutes with shifts).
+    subset_offsets : (P, 2) int array, optional
+        Custom subset shape: integer pixel offsets ``(dx, dy)`` from the subset centre
+        (e.g. a thin rectangle along a slip band, see :func:`oriented_subset`), at least 6
+        pixels. Default: the ``(2h+1)²`` square. ``half_window`` is then only used as the
+        scale of the convergence test and the divergence limit.
+    ref_prefiltered, cur_prefiltered : (H, W) arrays, optional
+        B-spline coefficients from :func:`prefilter_image` (with the same
+        ``smooth_sigma_px``), to save the prefilter when the same image is matched many
+        times.
+    progress : bool
+        Show a tqdm bar over chunks of subsets.
+
+    Returns
+    -------
+    SubsetResult
+        Subsets that leave either image (at any iteration), whose reference subset has a
+        singular Hessian (too little texture), that diverge (move more than ``h`` pixels
+        from the guess or gradient terms beyond ±0.5) or that do not reach ``tol_px``
+        within ``max_iter`` have ``converged = False``, NaN ``pts``/``warp`` and a
+        ``reason``. NaN input points are flagged the same way.
+
+    Raises
+    ------
+    ImageError
+        If an image is not 2D, too small or not finite.
+    SemlabError
+        On wrong shapes or invalid parameters.
+    """
+    ref = _as_image(ref_img, "ref_img")
+    cur = _as_image(cur_img, "cur_img")
+    h = _check_int(half_window, "half_window", 2)
+    max_iter = _check_int(max_iter, "max_iter", 1)
+    if warp not in ("affine", "translation"):
+        raise SemlabError(f"warp must be 'affine' or 'translation', got {warp!r}")
+    if not (np.isfinite(tol_px) and tol_px > 0):
+        raise SemlabError(f"tol_px must be a positive number, got {tol_px!r}")
+    pr = _as_points(pts_ref, "pts_ref")
+    n = len(pr)
+    pg = _as_points(pts_guess, "pts_guess", n)
+    if subset_offsets is None:
+        off = np.arange(-h, h + 1, dtype=np.float64)
+        oy, ox = np.meshgrid(off, off, indexing="ij")
+        xi = np.stack([ox.ravel(), oy.ravel()])
+    else:
+        so = np.asarray(subset_offsets, dtype=np.float64)
+        if so.ndim != 2 or so.shape[1] != 2 or len(so) < 6 or not np.all(so == np.round(so)):
+            raise SemlabError("subset_offsets must be a (P, 2) array of integer (dx, dy) "
+                              f"offsets with P >= 6, got shape {so.shape}")
+        xi = so.T.copy()
+    ext = int(np.abs(xi).max())
+    if init_warp is None:
+        grad0 = np.zeros((n, 4))
+    else:
+        iw = np.asarray(init_warp, dtype=np.float64)
+        if iw.shape == (6,):
+            iw = np.broadcast_to(iw, (n, 6))
+        if iw.shape != (n, 6):
+            raise SemlabError(f"init_warp must have shape (N, 6) = ({n}, 6) or (6,), "
+                              f"got {np.shape(init_warp)}")
+        grad0 = iw[:, [1, 2, 4, 5]].copy()
+        grad0[~np.all(np.isfinite(grad0), 1)] = 0.0
+
+    ref = _smooth(ref, smooth_sigma_px)
+    if cur_prefiltered is None:
+        cur = _smooth(cur, smooth_sigma_px)
+        ccoef = ndimage.spline_filter(cur, order=3, mode="mirror", output=np.float64)
+    else:
+        ccoef = np.asarray(cur_prefiltered, dtype=np.float64)
+        if ccoef.shape != cur.shape:
+            raise SemlabError("cur_prefiltered must have the shape of cur_img")
+    if ref_prefiltered is None:
+        rcoef = ndimage.spline_filter(ref, order=3, mode="mirror", output=np.float64)
+    else:
+        rcoef = np.asarray(ref_prefiltered, dtype=np.float64)
+        if rcoef.shape != ref.shape:
+            raise SemlabError("ref_prefiltered must have the shape of ref_img")
+    rgx, rgy = _spline_gradients(rcoef)
+
+    pts = np.full((n, 2), np.nan)
+    wout = np.full((n, 6), np.nan)
+    zncc = np.full(n, -1.0)
+    conv = np.zeros(n, bool)
+    nit = np.zeros(n, int)
+    sig = np.full((n, 2), np.nan)
+    reason = np.full(n, NAN_INPUT, dtype=object)
+
+    finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
+    X0 = np.zeros((n, 2), np.intp)
+    X0[finite] = np.rint(pr[finite]).astype(np.intp)
+    H0, W0 = ref.shape
+    ex = int(np.abs(xi[0]).max())
+    ey = int(np.abs(xi[1]).max())
+    inside = (finite & (X0[:, 0] >= ex) & (X0[:, 0] <= W0 - 1 - ex) & (X0[:, 1] >= ey)
+              & (X0[:, 1] <= H0 - 1 - ey))
+    reason[finite & ~inside] = OUTSIDE
+    idx = np.flatnonzero(inside)
+
+    ctx = dict(ref=ref, rgx=rgx, rgy=rgy, ccoef=ccoef, h=h, xi=xi, ext=ext,
+               affine=(warp == "affine"),
+               max_iter=max_iter, tol=float(tol_px),
+               noise_gain=_smoothing_variance_gain(smooth_sigma_px))
+    chunks = [idx[i:i + _CHUNK] for i in range(0, len(idx), _CHUNK)]
+
+    def run(ii):
+        return ii, _icgn_chunk(ctx, X0[ii], pr[ii], pg[ii], grad0[ii])
+
+    if len(chunks) > 1 and _N_THREADS > 1:
+        with ThreadPoolExecutor(_N_THREADS) as ex:
+            results = ex.map(run, chunks)
+            results = _maybe_tqdm(results, len(chunks), progress)
+            for ii, r in results:
+                _store(ii, r, pts, wout, zncc, conv, nit, sig, reason)
+    else:
+        for ii in _maybe_tqdm(chunks, len(chunks), progress):
+            _store(ii, run(ii)[1], pts, wout, zncc, conv, nit, sig, reason)
+
+    reason = np.array([str(r) for r in reason], dtype=object).astype(str) if n else \
+        np.zeros(0, dtype="<U1")
+    return SubsetResult(pts=pts, warp=wout, zncc=zncc, converged=conv, n_iter=nit,
+                        sigma_px=sig, reason=reason)
+
+
+def _maybe_tqdm(it, total, progress):
+    if not progress:
+        return it
+    from tqdm.auto import tqdm
+    return tqdm(it, total=total, desc="IC-GN subsets", unit="chunk")
+
+
+def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason):
+    p, w, z, c, k, s, why = r
+    pts[ii], wout[ii], zncc[ii], conv[ii], nit[ii], sig[ii] = p, w, z, c, k, s
+    reason[ii] = why
+
+
+def _icgn_chunk(ctx, X0, pr, pg, grad0):
+    """IC-GN for one chunk of subsets (all with reference subsets inside ref_img)."""
+    h, affine, ccoef = ctx["h"], ctx["affine"], ctx["ccoef"]
+    n = len(X0)
+    xi = ctx["xi"]                                          # (2, P) local coordinates
+    P = xi.shape[1]
+    dx, dy = xi
+    # Reference subsets (exact pixel values and B-spline gradients at the nodes).
+    rows = X0[:, 1, None] + dy.astype(np.intp)[None, :]
+    cols = X0[:, 0, None] + dx.astype(np.intp)[None, :]
+    f = ctx["ref"][rows, cols]
+    fx = ctx["rgx"][rows, cols]
+    fy = ctx["rgy"][rows, cols]
+    fz = f - f.mean(1, keepdims=True)
+    df = np.sqrt(np.einsum("np,np->n", fz, fz))
+    if affine:
+        JT = np.stack([fx, fx * dx, fx * dy, fy, fy * dx, fy * dy], axis=1)  # (n, 6, P)
+        cols_p = np.arange(6)
+    else:
+        JT = np.stack([fx, fy], axis=1)
+        cols_p = np.array([0, 3])
+    npar = len(cols_p)
+    Hs = np.matmul(JT, JT.transpose(0, 2, 1))
+    # Texture test: relative conditioning of the (scaled) Hessian.
+    scale = np.sqrt(np.einsum("nii->ni", Hs)) + 1e-300
+    Hn = Hs / scale[:, :, None] / scale[:, None, :]
+    ev = np.linalg.eigvalsh(Hn)
+    fmax = np.abs(f).max(1) + 1e-12
+    gmag = np.sqrt(np.einsum("np,np->n", fx, fx) + np.einsum("np,np->n", fy, fy))
+    textured = (df > 1e-8 * fmax * np.sqrt(P)) & (gmag > 1e-8 * fmax * np.sqrt(P)) & \
+        (ev[:, 0] > 1e-6)
+    Hinv = np.zeros_like(Hs)
+    Hinv[textured] = np.linalg.inv(Hs[textured])
+    # Pre-multiply: dp = -Hinv J^T r = -(Hinv J^T) r, with r = fz - ratio * gz and
+    # (Hinv J^T) fz constant.
+    HJ = np.matmul(Hinv, JT)                                 # (n, npar, P)
+    HJf = np.matmul(HJ, fz[:, :, None])[:, :, 0]             # (n, npar)
+
+    # Warp state about the integer centre X0: x' = X0 + t + A xi, xi = X - X0.
+    A = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+    A[:, 0, 0] += grad0[:, 0]
+    A[:, 0, 1] += grad0[:, 1]
+    A[:, 1, 0] += grad0[:, 2]
+    A[:, 1, 1] += grad0[:, 3]
+    o = pr - X0                                           # sub-pixel offset of pts_ref
+    c = pg - np.einsum("nij,nj->ni", A, o)                # image position of the centre
+    c_init = c.copy()
+
+    Hc, Wc = ccoef.shape
+    status = np.where(textured, 0, 2)    # 0 active, 1 converged, >= 2 failed
+    why = np.where(textured, OK, NO_TEXTURE).astype(object)
+    nit = np.zeros(n, int)
+    zn = np.full(n, -1.0)
+    rvar = np.full(n, np.nan)
+    eye = np.eye(2)
+    for _ in range(ctx["max_iter"]):
+        act = np.flatnonzero(status == 0)
+        if len(act) == 0:
+            break
+        allact = len(act) == n
+        a = A[act]
+        # corner test is enough for an affine map: extreme coordinates are at corners
+        cen = c[act]
+        ext = np.abs(a).sum(2) * ctx["ext"]               # (m, 2) half extent in x, y
+        ins = ((cen[:, 0] - ext[:, 0] >= 0) & (cen[:, 0] + ext[:, 0] <= Wc - 1)
+               & (cen[:, 1] - ext[:, 1] >= 0) & (cen[:, 1] + ext[:, 1] <= Hc - 1))
+        if not np.all(ins):
+            bad = act[~ins]
+            status[bad] = 3
+            why[bad] = OUTSIDE
+            act, a, cen = act[ins], a[ins], cen[ins]
+            allact = False
+            if len(act) == 0:
+                break
+        m = len(act)
+        nit[act] += 1
+        coords = np.matmul(a[:, ::-1, :], xi)                # (m, 2, P) rows = (y, x)
+        coords += cen[:, ::-1, None]
+        g = ndimage.map_coordinates(ccoef, coords.transpose(1, 0, 2).reshape(2, -1),
+                                    order=3, prefilter=False, mode="mirror").reshape(m, P)
+        g -= g.mean(1, keepdims=True)                      # g is now zero-mean (gz)
+        dg = np.sqrt(np.einsum("np,np->n", g, g))
+        flat = dg <= 1e-12 * (np.abs(g).max(1) + 1e-300) * np.sqrt(P)
+        if np.any(flat):
+            status[act[flat]] = 4
+            why[act[flat]] = NO_TEXTURE_CUR
+            keep = ~flat
+            act, a, g, dg, cen = act[keep], a[keep], g[keep], dg[keep], cen[keep]
+            allact = False
+            m = len(act)
+        fza = fz if allact else fz[act]
+        dfa = df if allact else df[act]
+        HJa = HJ if allact else HJ[act]
+        ratio = dfa / dg
+        fg = np.einsum("np,np->n", fza, g)
+        zn[act] = fg / (dfa * dg)
+        # residual r = fz - ratio g: |r|^2 = df^2 - 2 ratio fg + ratio^2 dg^2
+        rvar[act] = np.maximum(2 * dfa * dfa * (1 - zn[act]), 0) / max(P - npar, 1)
+        HJg = np.matmul(HJa, g[:, :, None])[:, :, 0]
+        dp = -((HJf if allact else HJf[act]) - ratio[:, None] * HJg)
+        full = np.zeros((m, 6))
+        full[:, cols_p] = dp
+        # W(p) <- W(p) o W(dp)^-1 ; W(dp): xi -> (I + D) xi + d
+        D = np.empty((m, 2, 2))
+        D[:, 0, 0] = 1 + full[:, 1]
+        D[:, 0, 1] = full[:, 2]
+        D[:, 1, 0] = full[:, 4]
+        D[:, 1, 1] = 1 + full[:, 5]
+        d = full[:, [0, 3]]
+        with np.errstate(all="ignore"):
+            Dinv = np.linalg.inv(D)
+        dinv = -np.einsum("nij,nj->ni", Dinv, d)
+        c[act] = cen + np.einsum("nij,nj->ni", a, dinv)
+        A[act] = np.matmul(a, Dinv)
+        step = np.sqrt(full[:, 0] ** 2 + full[:, 3] ** 2
+                       + h * h * (full[:, 1] ** 2 + full[:, 2] ** 2 + full[:, 4] ** 2
+                                  + full[:, 5] ** 2))
+        moved = np.linalg.norm(c[act] - c_init[act], axis=1)
+        gradbad = np.abs(A[act] - eye).max(axis=(1, 2)) > 0.5
+        div = ~np.isfinite(step) | (moved > h) | gradbad
+        status[act[div]] = 5
+        why[act[div]] = DIVERGED
+        done = ~div & (step < ctx["tol"])
+        status[act[done]] = 1
+    why[status == 0] = MAX_ITER
+    ok = status == 1
+
+    # Outputs: matched position of pts_ref, warp about pts_ref, uncertainty.
+    pos = c + np.einsum("nij,nj->ni", A, o)
+    pts = np.where(ok[:, None], pos, np.nan)
+    w = np.full((n, 6), np.nan)
+    w[:, 0] = pos[:, 0] - pr[:, 0]
+    w[:, 3] = pos[:, 1] - pr[:, 1]
+    w[:, 1] = A[:, 0, 0] - 1
+    w[:, 2] = A[:, 0, 1]
+    w[:, 4] = A[:, 1, 0]
+    w[:, 5] = A[:, 1, 1] - 1
+    w[~ok] = np.nan
+    # Covariance of the parameters: rvar * H^-1 (reference frame, f units). The position of
+    # the sub-pixel reference point depends on (u, v) and on the gradients times offset o.
+    e = np.zeros((n, 2, 6))
+    e[:, 0, 0] = 1
+    e[:, 0, 1] = o[:, 0]
+    e[:, 0, 2] = o[:, 1]
+    e[:, 1, 3] = 1
+    e[:, 1, 4] = o[:, 0]
+    e[:, 1, 5] = o[:, 1]
+    e = e[:, :, cols_p]
+    # With Gaussian pre-smoothing the residual variance understates the noise of the
+    # unsmoothed images by the kernel's Σ w²; dividing by it is exact for textures well
+    # inside the kernel's pass band and conservative otherwise.
+    var = np.einsum("nai,nij,naj->na", e, Hinv, e) * (rvar / ctx["noise_gain"])[:, None]
+    sig = np.where(ok[:, None], np.sqrt(np.maximum(var, 0)), np.nan)
+    zn = np.where(np.isfinite(zn) & (status != 2) & (status != 3) & (status != 4),
+                  np.clip(zn, -1, 1), -1.0)
+    return pts, w, zn, ok, nit, sig, why
