@@ -170,3 +170,16 @@ def plot_stability(stab, ax=None, label=None):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     return ax
+
+
+def show_static(fig, dpi=90):
+    """Display a figure as a still PNG and close it (for notebooks that use the interactive
+    ipympl backend, so that executed reports keep a picture)."""
+    import io
+
+    from IPython.display import Image, display
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    _plt().close(fig)
+    display(Image(buf.getvalue()))

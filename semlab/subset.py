@@ -62,7 +62,6 @@ NO_TEXTURE_CUR = "too little texture in the current image"
 DIVERGED = "IC-GN diverged"
 MAX_ITER = "IC-GN did not converge within max_iter"
 NAN_INPUT = "NaN input point"
-SEARCH_EDGE = "ZNCC peak on the edge of the search range"
 
 
 @dataclass(frozen=True)
@@ -419,7 +418,8 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     max_iter : int
         Maximum IC-GN iterations.
     tol_px : float
-        Convergence when ``sqrt(Δu² + Δv² + h²(Δu_x² + Δu_y² + Δv_x² + Δv_y²)) < tol_px``.
+        Convergence when the root-mean-square over the subset pixels of the change of
+        their warped positions in one update is below ``tol_px`` (pixels).
     init_warp : (N, 6) or (6,) array, optional
         Initial warps ``(u, du/dx, du/dy, v, dv/dx, dv/dy)``; only the gradient terms are
         used (the translation comes from ``pts_guess``).
@@ -434,7 +434,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         Custom subset shape: integer pixel offsets ``(dx, dy)`` from the subset centre
         (e.g. a thin rectangle along a slip band, see :func:`oriented_subset`), at least 6
         pixels. Default: the ``(2h+1)²`` square. ``half_window`` is then only used as the
-        scale of the convergence test and the divergence limit.
+        divergence limit.
     ref_prefiltered, cur_prefiltered : (H, W) arrays, optional
         B-spline coefficients from :func:`prefilter_image` (with the same
         ``smooth_sigma_px``), to save the prefilter when the same image is matched many
@@ -528,6 +528,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     idx = np.flatnonzero(inside)
 
     ctx = dict(ref=ref, rgx=rgx, rgy=rgy, ccoef=ccoef, h=h, xi=xi, ext=ext,
+               square=subset_offsets is None, cpad=np.pad(ccoef, 2, mode="reflect"),
                affine=(warp == "affine"),
                max_iter=max_iter, tol=float(tol_px),
                noise_gain=_smoothing_variance_gain(smooth_sigma_px))
@@ -565,12 +566,48 @@ def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason):
     reason[ii] = why
 
 
+def _bspline_weights(f):
+    """Cubic B-spline weights (n, 4) of the taps at -1, 0, 1, 2 for fractions f (n,)."""
+    f2 = f * f
+    f3 = f2 * f
+    w0 = (1 - f) ** 3 / 6
+    w3 = f3 / 6
+    w1 = 0.5 * f3 - f2 + 2.0 / 3.0
+    return np.stack([w0, w1, 1.0 - w0 - w1 - w3, w3], axis=1)
+
+
+def _translate_square(cpad, cen, h):
+    """Cubic B-spline samples of square subsets translated to centres cen (m, 2) = (x, y).
+
+    Every pixel of a translated square subset has the same fractional offset, so the 2D
+    spline evaluation separates into two 4-tap filters over a (2h+4)² coefficient patch
+    (the same values as ``map_coordinates(order=3, prefilter=False, mode="mirror")``).
+    ``cpad`` is the coefficient image padded by 2 with mirror symmetry.
+    """
+    k = 2 * h + 1
+    fl = np.floor(cen)
+    f = cen - fl
+    i0 = fl.astype(np.intp)
+    view = sliding_window_view(cpad, (k + 3, k + 3))
+    patch = view[i0[:, 1] - h + 1, i0[:, 0] - h + 1]          # (m, k+3, k+3)
+    wx = _bspline_weights(f[:, 0])
+    wy = _bspline_weights(f[:, 1])
+    tmp = wx[:, 0, None, None] * patch[:, :, 0:k]
+    for b in range(1, 4):
+        tmp += wx[:, b, None, None] * patch[:, :, b:b + k]
+    g = wy[:, 0, None, None] * tmp[:, 0:k, :]
+    for a_ in range(1, 4):
+        g += wy[:, a_, None, None] * tmp[:, a_:a_ + k, :]
+    return g.reshape(len(cen), k * k)
+
+
 def _icgn_chunk(ctx, X0, pr, pg, grad0):
     """IC-GN for one chunk of subsets (all with reference subsets inside ref_img)."""
     h, affine, ccoef = ctx["h"], ctx["affine"], ctx["ccoef"]
     n = len(X0)
     xi = ctx["xi"]                                          # (2, P) local coordinates
     P = xi.shape[1]
+    Sxi = xi @ xi.T / P                                     # second moments of the subset
     dx, dy = xi
     # Reference subsets (exact pixel values and B-spline gradients at the nodes).
     rows = X0[:, 1, None] + dy.astype(np.intp)[None, :]
@@ -641,10 +678,17 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
                 break
         m = len(act)
         nit[act] += 1
-        coords = np.matmul(a[:, ::-1, :], xi)                # (m, 2, P) rows = (y, x)
-        coords += cen[:, ::-1, None]
-        g = ndimage.map_coordinates(ccoef, coords.transpose(1, 0, 2).reshape(2, -1),
-                                    order=3, prefilter=False, mode="mirror").reshape(m, P)
+        g = np.empty((m, P))
+        ident = np.all(a == eye, axis=(1, 2)) if ctx["square"] else np.zeros(m, bool)
+        if np.any(ident):      # pure translation of a square subset: separable B-spline
+            g[ident] = _translate_square(ctx["cpad"], cen[ident], h)
+        if not np.all(ident):
+            gen = ~ident
+            coords = np.matmul(a[gen][:, ::-1, :], xi)       # (m', 2, P) rows = (y, x)
+            coords += cen[gen][:, ::-1, None]
+            g[gen] = ndimage.map_coordinates(
+                ccoef, coords.transpose(1, 0, 2).reshape(2, -1), order=3, prefilter=False,
+                mode="mirror").reshape(-1, P)
         g -= g.mean(1, keepdims=True)                      # g is now zero-mean (gz)
         dg = np.sqrt(np.einsum("np,np->n", g, g))
         flat = dg <= 1e-12 * (np.abs(g).max(1) + 1e-300) * np.sqrt(P)
@@ -679,9 +723,10 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
         dinv = -np.einsum("nij,nj->ni", Dinv, d)
         c[act] = cen + np.einsum("nij,nj->ni", a, dinv)
         A[act] = np.matmul(a, Dinv)
-        step = np.sqrt(full[:, 0] ** 2 + full[:, 3] ** 2
-                       + h * h * (full[:, 1] ** 2 + full[:, 2] ** 2 + full[:, 4] ** 2
-                                  + full[:, 5] ** 2))
+        # RMS over the subset pixels of the displacement change of this update
+        Dm = D - eye
+        step = np.sqrt(np.einsum("ni,ni->n", d, d)
+                       + np.einsum("nij,jk,nik->n", Dm, Sxi, Dm))
         moved = np.linalg.norm(c[act] - c_init[act], axis=1)
         gradbad = np.abs(A[act] - eye).max(axis=(1, 2)) > 0.5
         div = ~np.isfinite(step) | (moved > h) | gradbad

@@ -531,7 +531,7 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
                     n_frames=6, n_clicks=50, click_noise_px=0.5, line_noise_px=1.0,
                     slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0), band_angle_deg=35.0,
                     noise=0.01, frame_noise=0.012, early_contrast=0.3, write_block=True,
-                    block_size=(768, 1024),
+                    block_size=(768, 1024), tilt_in_toml=True, tilt_in_metadata=True,
                     name=None, overwrite=False, progress=True):
     """Write a complete synthetic experiment folder with ground truth.
 
@@ -552,6 +552,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         Click noise of the block's line end points.
     block_size : (H, W)
         Size of the calibration-block images (a separate, larger image than the views).
+    tilt_in_toml, tilt_in_metadata : bool
+        Where the stage tilts are written (both False: tilts unknown, to be estimated).
     slip_um, uniform_strain, band_angle_deg
         See :func:`make_scene`.
     noise, frame_noise : float
@@ -604,7 +606,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
     for i, t in enumerate(tilts):
         img, x, y = render(scene, size, t, noise=noise, rng=rng)
         f = out / "end_state" / f"view_{i}.tif"
-        write_tiff(f, to_uint16(img), pixel_size_um=s, tilt_deg=t, overwrite=overwrite)
+        write_tiff(f, to_uint16(img), pixel_size_um=s, tilt_deg=t if tilt_in_metadata else None,
+                   overwrite=overwrite)
         view_files.append(f.relative_to(out).as_posix())
         if i == 0:
             z0 = scene.height(x, y)
@@ -674,7 +677,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         ccols["crack_id"] = clicks["crack_id"]
         _write_csv(out / "annotations" / "correspondences.csv", ccols, blank_negative="crack_id")
         stereo_lines += ["[stereo]", f"views = {json.dumps(view_files)}",
-                         f"tilt_deg = {json.dumps(tilts)}", 'camera = "affine"',
+                         *([f"tilt_deg = {json.dumps(tilts)}"] if tilt_in_toml else []),
+                         'camera = "affine"',
                          'correspondences = "annotations/correspondences.csv"']
         if write_block:
             views_json, block_truth = [], {"box_dims": list(BOX_DIMS), "views": []}

@@ -397,7 +397,10 @@ class CorrespondencePicker:
         try:
             params = inspect.signature(fn).parameters
             kw = {"ref_view": ref_view} if "ref_view" in params else {}
-            out = np.asarray(fn(images, guess[None], **kw), dtype=float)
+            if "band_aware" in params:  # the band-aware pass costs ~1 s: too slow per click
+                kw["band_aware"] = False
+            out = fn(images, guess[None], **kw)
+            out = np.asarray(getattr(out, "pts", out), dtype=float)
             out = out.reshape(1, self.n_views, 2)
         except (SemlabError, TypeError, ValueError) as err:
             self.last_refine_error = err

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from semlab.errors import ImageError, SemlabError
-from semlab.subset import SubsetResult, icgn_refine, prefilter_image, zncc_match
+from semlab.subset import (SubsetResult, icgn_refine, oriented_subset, prefilter_image,
+                           zncc_match)
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SAMPLE5 = SHARED / "dic_challenge" / "sample5"
@@ -225,6 +226,34 @@ def test_smoothing_keeps_translation_exact(tex):
     r2 = icgn_refine(ref, cur, pts, pts, half_window=10, smooth_sigma_px=0.8,
                      cur_prefiltered=cc)
     assert np.allclose(r.pts, r2.pts)
+
+
+def test_oriented_subset_shape_and_matching(tex):
+    off = oriented_subset(12, 2, 30.0)
+    a = np.deg2rad(30.0)
+    along = off[:, 0] * np.cos(a) + off[:, 1] * np.sin(a)
+    across = -off[:, 0] * np.sin(a) + off[:, 1] * np.cos(a)
+    assert np.abs(along).max() <= 12 and np.abs(across).max() <= 2
+    assert np.abs(along).max() > 10 and len(off) > 60
+    assert len(np.unique(off, axis=0)) == len(off)
+    A = np.array([[1.01, 0.003], [-0.004, 0.996]])
+    t = (0.45, -0.3)
+    ref = _render(tex, SHAPE)
+    cur = _render(tex, SHAPE, A=A, t=t)
+    pts = _grid(SHAPE, 30, 10) + 0.4
+    truth = _map(pts, A, t, SHAPE)
+    # thin subsets constrain the across-gradient terms weakly: IC-GN converges slowly
+    r = icgn_refine(ref, cur, pts, np.rint(truth), half_window=12, subset_offsets=off,
+                    max_iter=80, tol_px=1e-3)
+    assert r.converged.all()
+    assert np.abs(r.pts - truth).max() < 0.01
+    # a long subset near the border leaves the image and is flagged
+    rb = icgn_refine(ref, cur, [[8.0, 60.0]], [[8.0, 60.0]], subset_offsets=off)
+    assert not rb.converged[0] and "leaves" in rb.reason[0]
+    with pytest.raises(SemlabError):
+        icgn_refine(ref, cur, pts, pts, subset_offsets=[[0, 0], [1, 0]])
+    with pytest.raises(SemlabError):
+        oriented_subset(0, 2, 10)
 
 
 def test_bad_input_raises(tex):

@@ -141,7 +141,6 @@ if save_path is not None:
 '''),
     md("## The saved points"),
     code('''
-%matplotlib inline
 corr = exp.correspondences() if exp.stereo is not None else None
 if corr is None:
     print("No correspondences file yet: pick points above and press Save (or run automatic "
@@ -152,6 +151,7 @@ else:
         plots.show_image(exp.views()[i], ax=ax, title=f"view {i}", points=corr.pts[:, i],
                          labels=corr.point_id)
     fig.tight_layout()
+    plots.show_static(fig)  # a still picture: the picker above keeps the interactive canvas
     print(f"{corr.n_points} points in {corr.n_views} views")
 '''),
 ]

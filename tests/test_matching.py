@@ -1,0 +1,239 @@
+"""Tests of semlab.matching on a synthetic stereo pair made here.
+
+The scene: a band-limited random texture T(x, y) (smoothed white noise on a raster twice as
+fine as the pixels, sampled with cubic B-splines) and a height field z(x, y) of tanh-edged
+ribbons 0.1–0.3 µm high. View i at tilt θi shows at pixel (u, v) the material point solving
+``x cos θ + z(x, y) sin θ = s (u − cx)``, ``y = s (v − cy)`` (fixed-point iteration).
+"""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab.errors import GeometryError, ImageError, SemlabError
+from semlab.matching import (MatchResult, auto_match, fit_affine, merge_matches,
+                             refine_correspondences)
+
+S_UM = 0.03
+TILTS = (-5.0, 5.0)
+SHAPE = (200, 260)
+
+
+class Scene:
+    def __init__(self, seed=0, shape=SHAPE, band_angle_deg=30.0, edge_um=0.25):
+        rng = np.random.default_rng(seed)
+        h, w = shape
+        self.shape = shape
+        self.c = ((w - 1) / 2, (h - 1) / 2)
+        self.step = S_UM / 2
+        self.x0 = -(w / 2 + 20) * S_UM
+        self.y0 = -(h / 2 + 20) * S_UM
+        nx = int(2 * (w + 40))
+        ny = int(2 * (h + 40))
+        tex = ndimage.gaussian_filter(rng.standard_normal((ny, nx)), 2.6)
+        self.coef = ndimage.spline_filter(tex / tex.std(), order=3)
+        a = np.deg2rad(band_angle_deg)
+        self.normal = np.array([-np.sin(a), np.cos(a)])
+        half_diag = np.hypot(w, h) / 2 * S_UM
+        self.centres = np.linspace(-0.6 * half_diag, 0.6 * half_diag, 3)
+        self.widths = rng.uniform(1.0, 1.5, 3)
+        self.amps = np.array([0.3, -0.15, 0.2]) * rng.choice([-1, 1])
+        self.edge = edge_um
+
+    def z(self, x, y):
+        n = x * self.normal[0] + y * self.normal[1]
+        z = np.zeros(np.shape(x))
+        for c, w, a in zip(self.centres, self.widths, self.amps):
+            z = z + a * 0.5 * (np.tanh((n - c + w / 2) / self.edge)
+                               - np.tanh((n - c - w / 2) / self.edge))
+        return z
+
+    def T(self, x, y):
+        r = (np.asarray(y) - self.y0) / self.step
+        c = (np.asarray(x) - self.x0) / self.step
+        return ndimage.map_coordinates(self.coef, [r.ravel(), c.ravel()], order=3,
+                                       prefilter=False).reshape(np.shape(x))
+
+    def material(self, u, v, tilt_deg):
+        """Material (x, y) seen at pixel (u, v) of the view at tilt_deg."""
+        t = np.deg2rad(tilt_deg)
+        a = S_UM * (np.asarray(u, float) - self.c[0])
+        y = S_UM * (np.asarray(v, float) - self.c[1])
+        x = a / np.cos(t)
+        for _ in range(40):
+            x = (a - self.z(x, y) * np.sin(t)) / np.cos(t)
+        return x, y
+
+    def render(self, tilt_deg, noise=0.02, gain=1.0, offset=0.0, seed=1):
+        h, w = self.shape
+        vv, uu = np.mgrid[0:h, 0:w].astype(float)
+        x, y = self.material(uu, vv, tilt_deg)
+        img = 100 + 20 * self.T(x, y)
+        rng = np.random.default_rng(seed)
+        img = gain * (img + rng.normal(0, noise * 20, img.shape)) + offset
+        return img
+
+    def project(self, x, y, tilt_deg):
+        t = np.deg2rad(tilt_deg)
+        u = self.c[0] + (x * np.cos(t) + self.z(x, y) * np.sin(t)) / S_UM
+        v = self.c[1] + y / S_UM
+        return np.column_stack([u, v])
+
+
+def heights_from(pts, c):
+    """z = s((u1 − c) cos θ0 − (u0 − c) cos θ1) / sin(θ1 − θ0)."""
+    t0, t1 = np.deg2rad(TILTS)
+    return S_UM * ((pts[:, 1, 0] - c) * np.cos(t0) - (pts[:, 0, 0] - c) * np.cos(t1)) \
+        / np.sin(t1 - t0)
+
+
+@pytest.fixture(scope="module")
+def stereo():
+    sc = Scene(seed=0)
+    ims = [sc.render(TILTS[0], seed=1), sc.render(TILTS[1], gain=0.8, offset=12, seed=2)]
+    return sc, ims
+
+
+def _clicks(sc, n=40, seed=3, noise_px=0.5, margin=30):
+    rng = np.random.default_rng(seed)
+    h, w = sc.shape
+    x = (rng.uniform(margin, w - margin, n) - sc.c[0]) * S_UM
+    y = (rng.uniform(margin, h - margin, n) - sc.c[1]) * S_UM
+    true = np.stack([sc.project(x, y, t) for t in TILTS], axis=1)
+    return true, true + rng.normal(0, noise_px, true.shape)
+
+
+def test_refined_clicks_reach_height_accuracy(stereo):
+    sc, ims = stereo
+    true, clicks = _clicks(sc)
+    r = refine_correspondences(ims, clicks)
+    assert isinstance(r, MatchResult)
+    assert r.valid.all()
+    # the reference-view positions are kept exactly
+    assert np.array_equal(r.pts[:, 0], clicks[:, 0])
+    assert np.all(r.zncc[:, 0] == 1) and np.all(r.kind == "click")
+    # true height of the material point at the (noisy) reference click
+    x, y = sc.material(clicks[:, 0, 0], clicks[:, 0, 1], TILTS[0])
+    zt = sc.z(x, y)
+    err = heights_from(r.pts, sc.c[0]) - zt
+    err_raw = heights_from(clicks, sc.c[0]) - zt
+    rms = np.sqrt(np.mean(err ** 2))
+    assert rms <= 0.008
+    assert np.sqrt(np.mean(err_raw ** 2)) > 5 * rms
+    assert np.all(np.isfinite(r.sigma_px)) and np.all(r.sigma_px < 0.05)
+
+
+def test_band_aware_subsets_reduce_edge_bias():
+    # sharp ribbon edges (0.08 µm): square subsets straddling them are biased
+    sc = Scene(seed=4, edge_um=0.08, band_angle_deg=-40.0)
+    ims = [sc.render(TILTS[0], seed=1), sc.render(TILTS[1], seed=2)]
+    true, clicks = _clicks(sc, n=40, seed=17)
+    x, y = sc.material(clicks[:, 0, 0], clicks[:, 0, 1], TILTS[0])
+    zt = sc.z(x, y)
+    rms = {}
+    for band in (False, True):
+        r = refine_correspondences(ims, clicks, band_aware=band)
+        rms[band] = np.sqrt(np.nanmean((heights_from(r.pts, sc.c[0]) - zt) ** 2))
+    assert rms[True] < 0.75 * rms[False]
+
+
+def test_ref_view_one_and_square_only(stereo):
+    sc, ims = stereo
+    true, clicks = _clicks(sc, n=15, seed=5)
+    r1 = refine_correspondences(ims, clicks, ref_view=1, band_aware=False)
+    assert r1.valid.all() and r1.ref_view == 1
+    assert np.array_equal(r1.pts[:, 1], clicks[:, 1])
+    # the view-0 position found for the material point under the view-1 click
+    x, y = sc.material(clicks[:, 1, 0], clicks[:, 1, 1], TILTS[1])
+    expect = sc.project(x, y, TILTS[0])
+    assert np.sqrt(np.mean((r1.pts[:, 0] - expect) ** 2)) < 0.05
+
+
+def test_click_too_far_is_flagged(stereo):
+    sc, ims = stereo
+    true, clicks = _clicks(sc, n=6, seed=7, noise_px=0.0)
+    clicks[2, 1, 0] += 9.0          # beyond search_px = 4 in view 1
+    r = refine_correspondences(ims, clicks, band_aware=False)
+    assert not r.valid[2] and "view 1" in r.reason[2]
+    assert r.valid[[0, 1, 3, 4, 5]].all() and np.all(r.reason[[0, 1, 3, 4, 5]] == "")
+    assert np.isnan(r.sigma_px[2])
+
+
+def test_auto_match_many_accurate_points(stereo):
+    sc, ims = stereo
+    a = auto_match(ims, spacing_px=8, progress=False)
+    assert np.all(a.kind == "auto")
+    v = a.only_valid()
+    assert len(v) >= 300
+    assert np.all(np.isfinite(v.pts)) and np.all(v.zncc >= 0.9)
+    x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
+    err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+    assert np.sqrt(np.mean(err ** 2)) <= 0.010
+    assert np.abs(err).max() < 0.06            # no gross mismatch survives
+    assert np.all(a.reason[~a.valid] != "") and np.all(a.reason[a.valid] == "")
+
+
+def test_auto_match_max_points_and_unrelated_views(stereo):
+    sc, ims = stereo
+    a = auto_match(ims, spacing_px=8, max_points=100, progress=False, band_aware=False)
+    assert len(a) == 100
+    rng = np.random.default_rng(0)
+    other = ndimage.gaussian_filter(rng.normal(100, 20, SHAPE), 1.3)
+    with pytest.raises(GeometryError):
+        auto_match([ims[0], other], progress=False)
+
+
+def test_merge_keeps_better_duplicate(stereo):
+    sc, ims = stereo
+    true, clicks = _clicks(sc, n=10, seed=11)
+    rc = refine_correspondences(ims, clicks, band_aware=False)
+    ra = auto_match(ims, spacing_px=16, progress=False, band_aware=False)
+    # put one auto point on top of click 0 with a worse sigma
+    dup = ra.select(np.r_[0])
+    dup = MatchResult(pts=rc.pts[:1].copy(), zncc=dup.zncc, valid=np.array([True]),
+                      sigma_px=rc.sigma_px[:1] * 3, reason=np.array([""]), ref_view=0,
+                      kind=np.array(["auto"]), source_index=np.array([999]))
+    m = merge_matches(rc, dup)
+    assert len(m) == len(rc)
+    assert np.all(m.kind == "click")
+    m2 = merge_matches(rc, ra, min_separation_px=3)
+    d = np.hypot(*(m2.pts[:, None, 0] - m2.pts[None, :, 0]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    assert d.min() >= 3
+    assert len(m2) <= len(rc) + len(ra) and (m2.kind == "click").sum() >= 1
+    with pytest.raises(GeometryError):
+        merge_matches(rc, MatchResult(pts=np.zeros((1, 3, 2)), zncc=np.ones((1, 3)),
+                                      valid=np.ones(1, bool), sigma_px=np.ones(1),
+                                      reason=np.array([""]), ref_view=0,
+                                      kind=np.array(["auto"]), source_index=np.zeros(1, int)))
+
+
+def test_bad_input_raises(stereo):
+    sc, ims = stereo
+    true, clicks = _clicks(sc, n=5, seed=13)
+    with pytest.raises(GeometryError):
+        refine_correspondences(ims, np.zeros((0, 2, 2)))
+    out = clicks.copy()
+    out[1, 1, 0] = 500.0
+    with pytest.raises(GeometryError):
+        refine_correspondences(ims, out)
+    nan = clicks.copy()
+    nan[0, 0, 1] = np.nan
+    with pytest.raises(GeometryError):
+        refine_correspondences(ims, nan)
+    with pytest.raises(ImageError):
+        refine_correspondences([ims[0], ims[1][:-5]], clicks)
+    with pytest.raises(GeometryError):
+        refine_correspondences([ims[0], ims[1], ims[1]], clicks)
+    with pytest.raises(GeometryError):
+        refine_correspondences(ims, clicks[:, 0])
+    with pytest.raises(ImageError):
+        refine_correspondences([ims[0]], clicks[:, :1])
+    with pytest.raises(GeometryError):
+        refine_correspondences(ims, clicks, ref_view=2)
+    with pytest.raises(ImageError):
+        auto_match(ims[0], progress=False)
+    with pytest.raises(SemlabError):
+        auto_match(ims, detector="orb", progress=False)
+    with pytest.raises(GeometryError):
+        fit_affine(np.array([[0, 0], [1, 1], [2, 2.0]]), np.zeros((3, 2)))
