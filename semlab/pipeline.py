@@ -234,7 +234,15 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True):
     if st.tilt_deg is not None:
         return np.asarray(st.tilt_deg, float), st.tilt_source, np.zeros(v)
     if v >= 3:
-        est = reconstruct.estimate_tilts(pts, exp.pixel_size_um, progress=progress)
+        # Square affine subsets smooth the parallax of narrow ribbons, but by the same linear
+        # operator in every view pair, so their matches stay exactly consistent with a
+        # (smoothed) surface and the metric upgrade stays unbiased. The band-aware matches
+        # used for heights switch subsets point by point, which breaks that consistency.
+        from . import matching
+
+        m = matching.auto_match(exp.views(), band_aware=False, progress=progress)
+        tilt_pts = m.pts[m.valid] if m.valid.sum() >= 20 else pts
+        est = reconstruct.estimate_tilts(tilt_pts, exp.pixel_size_um, progress=progress)
         return np.asarray(est.tilt_deg), "estimated", np.asarray(est.tilt_sigma_deg)
     if lines_cal is not None:
         d = reconstruct.tilt_from_rotation(lines_cal.relative_R[1])
