@@ -734,23 +734,23 @@ def _choose_clicks(scene, parts, n_clicks, size, tilts, rng):
         if all(np.hypot(*(cand[i] - cand[j])) > 12 * s for j in chosen):
             chosen.append(i)
     n_crack = min(10, n_clicks // 5) if len(scene.crack_offsets_um) else 0
-    sel = cand[chosen[: n_clicks - n_crack]]
-    crack_id = [-1] * len(sel)
-    pts = [sel]
+    cpts = np.zeros((0, 2))
     if n_crack:
         a = np.deg2rad(scene.band_angle_deg)
         along_dir = np.array([np.cos(a), np.sin(a)])
         normal = np.array([-np.sin(a), np.cos(a)])
         a0, a1 = scene.crack_extent_um[0]
         along = np.linspace(a0 + 0.4, a1 - 0.4, 200)
-        cpts = (along[:, None] * along_dir + (scene.crack_offsets_um[0] + 2.5 * scene.crack_width_um)
+        line = (along[:, None] * along_dir + (scene.crack_offsets_um[0] + 2.5 * scene.crack_width_um)
                 * normal)
-        inside = (np.abs(cpts[:, 0]) < hx - 25 * s) & (np.abs(cpts[:, 1]) < hy - 25 * s)
-        cpts = cpts[inside]
-        if len(cpts) >= n_crack:
-            cpts = cpts[np.linspace(0, len(cpts) - 1, n_crack).round().astype(int)]
-            pts.append(cpts)
-            crack_id += [1] * len(cpts)
+        inside = (np.abs(line[:, 0]) < hx - 25 * s) & (np.abs(line[:, 1]) < hy - 25 * s)
+        line = line[inside]
+        if len(line) >= n_crack:
+            cpts = line[np.linspace(0, len(line) - 1, n_crack).round().astype(int)]
+    # particles make up the rest, so that n_clicks points are written whenever possible
+    sel = cand[chosen[: n_clicks - len(cpts)]]
+    pts = [sel, cpts]
+    crack_id = [-1] * len(sel) + [1] * len(cpts)
     return {"xy_um": np.vstack(pts), "crack_id": np.array(crack_id)}
 
 

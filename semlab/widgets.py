@@ -669,9 +669,14 @@ class CorrespondencePicker:
 
 def _new_figure(figsize):
     import matplotlib.pyplot as plt
+    from matplotlib._pylab_helpers import Gcf
 
     with plt.ioff():
-        return plt.figure(figsize=figsize)
+        fig = plt.figure(figsize=figsize)
+    # keep the picker out of pyplot's figure list: a later plt.close("all") or a backend
+    # switch in another cell must not close the live picker
+    Gcf.figs.pop(fig.canvas.manager.num, None)
+    return fig
 
 
 def _toolbar_busy(fig):
