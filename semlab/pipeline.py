@@ -405,12 +405,13 @@ def earliest_valid_frame(valid):
     return np.where(v.any(axis=0), first, -1)
 
 
-def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=40.0,
+def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
                               grid_step_px=16, heights=None, progress=False):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
 
     Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
-    length ``gauge_length_px`` on the tracks valid in both frames. Dense: a grid of subsets in
+    length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
+    disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
     the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
     tracks); with ``U(x)`` the displacement as a function of end-state position,
     ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
@@ -432,12 +433,17 @@ def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge
 
     s = float(pixel_size_um)
     ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
-    out = {"ref_frame": int(ref_frame), "gauge_length_um": gauge_length_px * s}
+    out = {"ref_frame": int(ref_frame)}
     p_ref, p_end = xy[ref_frame][ok], xy[-1][ok]
     if ok.sum() < 6:
         raise SemlabError(f"only {int(ok.sum())} tracks are valid in both frame {ref_frame} and the "
                           "last frame: too few for strain (need 6)")
     disp_um = (p_end - p_ref) * s
+    if gauge_length_px is None:
+        span = np.ptp(p_ref, axis=0)
+        density = len(p_ref) / max(span[0] * span[1], 1.0)
+        gauge_length_px = 2.0 * np.sqrt(12.0 / (np.pi * density))
+    out["gauge_length_um"] = gauge_length_px * s
     G_lsq = st.gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s)
     G_tri, tri = st.gradient_from_triangles(p_ref * s, disp_um)
     out.update(pts_px=p_end, E_lsq=st.green_lagrange(G_lsq), tri=tri, E_tri=st.green_lagrange(G_tri))
@@ -495,7 +501,7 @@ def stereo_points(exp, out_dir=None, progress=False, **kw):
 
 
 def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
-                 gauge_length_px=40.0, progress=True):
+                 gauge_length_px=None, progress=True):
     """Track points backwards through the series and derive displacements and strain.
 
     Parameters

@@ -410,7 +410,7 @@ def _lk(prev_u8, next_u8, p0, guess, lk_kw):
 def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_threshold_px=0.5,
                   min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
                   max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
-                  max_jump_px=None, subset_half_window=None):
+                  max_jump_px=None, subset_half_window=None, max_gap_frames=3):
     """Track points seeded in the last frame backwards in time to frame 0.
 
     Algorithm (for each frame ``k = F-2, F-3, ..., 0``):
@@ -489,6 +489,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         (default ``win_size``; raise it for series with large motion between frames).
     subset_half_window : int, optional
         IC-GN subset half size for ``method="subset"`` (default ``win_size // 2``).
+    max_gap_frames : int or None
+        A track suspended for more than this many consecutive frames has ended: it is never
+        valid again (re-acquisition after a long gap is where look-alike features are
+        matched). None: no limit.
 
     Returns
     -------
@@ -663,6 +667,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             good &= np.isfinite(z) & (z >= min_zncc)
         if max_sigma_px is not None:
             good &= sig[k] <= max_sigma_px
+        if max_gap_frames is not None:
+            # a track suspended for longer than max_gap_frames has ended: re-acquiring it
+            # after a long gap is where look-alike features get matched
+            good &= (last_frame - k - 1) <= max_gap_frames
         if outlier_threshold is not None:
             good &= ~median_outliers(seeds, pos - seeds, good, threshold=outlier_threshold,
                                      n_neighbours=int(n_neighbours))
@@ -695,7 +703,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     params = dict(win_size=win_size, max_level=max_level, fb_threshold_px=fb_threshold_px,
                   min_zncc=min_zncc, direct_correction=direct_correction,
                   max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
-                  n_neighbours=n_neighbours, max_jump_px=max_jump)
+                  n_neighbours=n_neighbours, max_jump_px=max_jump, max_gap_frames=max_gap_frames)
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
                   reference_frame=ref, method=method, params=params)
 
