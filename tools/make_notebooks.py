@@ -228,7 +228,8 @@ for which the affine F (Gold Standard, H&Z Alg. 14.1) is the right model: its ep
 parallel and perpendicular to the tilt axis. With nearly flat samples and parallel projection
 the eight-point F is poorly determined — semlab says so instead of returning a bad matrix.
 """),
-    params('stability_resamples = 40   # random subsets per size in the stability plot\n'),
+    params('# stability_resamples: random subsets per size in the stability plot\n'
+           'stability_resamples = 40\n'),
     code(SETUP),
     code('''
 from semlab import epipolar, matching
@@ -310,8 +311,10 @@ correspondences (hand clicks refined by sub-pixel matching, plus automatic match
 The reference method — raw clicks through the same geometry — is shown alongside: its error
 is of the size of the thing measured.
 """),
-    params('method = None        # "raw", "refined", "auto", "merged"; None = merged if clicks exist\n'
-           'n_boot = 100         # bootstrap resamples for the error bars\n'),
+    params('# method: "raw", "refined", "auto" or "merged"; None = merged if clicks exist\n'
+           'method = None\n'
+           '# n_boot: bootstrap resamples for the error bars\n'
+           'n_boot = 100\n'),
     code(SETUP),
     code('''
 from semlab import pipeline, surface
@@ -413,7 +416,8 @@ featureless: every step carries its forward–backward error and a valid flag, a
 step suspends the track instead of turning into a jump. Results are stored by frame index,
 0 = earliest.
 """),
-    params('track_method = "lk"   # "lk" (pyramidal Lucas-Kanade) or "subset" (IC-GN, DIC-grade)\n'),
+    params('# track_method: "lk" (pyramidal Lucas-Kanade) or "subset" (IC-GN, DIC-grade)\n'
+           'track_method = "lk"\n'),
     code(SETUP),
     code(TRACK_SETUP + '''
 if tr is not None and out_dir:
@@ -464,8 +468,11 @@ if tr is not None:
         ax.set_ylabel("tracks")
     axes[0].legend()
     fig.tight_layout()
-    b = stats.bimodality(tr.d_um[ok])
-    print(f"|d|: two-component mixture preferred: {b['prefers_two']} (ΔBIC = {b['delta_bic']:.1f})")
+    if ok.sum() >= 10:
+        b = stats.bimodality(tr.d_um[ok])
+        print(f"|d|: two-component mixture preferred: {b['prefers_two']} (ΔBIC = {b['delta_bic']:.1f})")
+    else:
+        print(f"only {ok.sum()} displacements: too few for the bimodality test (needs 10)")
     a, c = tr.d_um[ok & (tr.seed == "corner")], tr.d_um[ok & (tr.seed == "stereo")]
     if len(a) > 3 and len(c) > 3:
         ks = stats.compare_distributions(a, c)
