@@ -137,6 +137,54 @@ def test_gain_offset_invariance(tex):
     assert np.allclose(p1, p2, atol=1e-6) and np.allclose(z1, z2, atol=1e-9)
 
 
+def test_large_intensity_offset_keeps_precision(tex):
+    # General warps sample the current image from float32 B-spline coefficients; they are
+    # stored minus their mean, so a large intensity level costs no precision.
+    A = np.array([[1.01, 0.004], [-0.003, 0.995]])
+    t = (0.31, -0.42)
+    ref = _render(tex, SHAPE)
+    cur = _render(tex, SHAPE, A=A, t=t)
+    pts = _grid(SHAPE, 28, 12)
+    guess = np.rint(_map(pts, A, t, SHAPE))
+    a = icgn_refine(ref, cur, pts, guess, half_window=10)
+    b = icgn_refine(ref, cur + 1e6, pts, guess, half_window=10)
+    assert a.converged.all() and b.converged.all()
+    assert np.abs(a.pts - _map(pts, A, t, SHAPE)).max() < 0.01
+    assert np.abs(a.pts - b.pts).max() < 1e-5
+    assert np.abs(a.warp - b.warp).max() < 1e-6
+
+
+def test_bspline_sampler_matches_map_coordinates():
+    # The tap-gather sampler used for general warps equals scipy's cubic B-spline
+    # (mode="mirror") minus the coefficients' mean, up to float32 rounding, everywhere
+    # in the image including the border rows and columns.
+    from scipy import ndimage
+    from semlab.subset import _bspline_sample, _pair_table
+    rng = np.random.default_rng(5)
+    img = ndimage.gaussian_filter(rng.normal(100, 20, (37, 53)), 1.0)
+    coef = ndimage.spline_filter(img, order=3, mode="mirror")
+    H, W = img.shape
+    x = np.concatenate([rng.uniform(0, W - 1, 3000), [0, W - 1, 0, W - 1, 17.0]])
+    y = np.concatenate([rng.uniform(0, H - 1, 3000), [0, 0, H - 1, H - 1, 11.5]])
+    want = ndimage.map_coordinates(coef, [y, x], order=3, prefilter=False, mode="mirror")
+    table, wp, scale = _pair_table(np.pad(coef - coef.mean(), 2, mode="reflect"))
+    assert wp == W + 4
+    got = _bspline_sample(table, wp, np.stack([x, y])[None]).ravel() + coef.mean()
+    assert np.abs(got - want).max() < 1e-5 * scale
+    assert np.abs(got - want).max() > 0      # it is the float32 path, not a copy
+
+
+def test_flat_current_subset_under_general_warp(tex):
+    # With a non-identity init_warp the first iteration already samples a general warp.
+    ref = _render(tex, SHAPE)
+    blank = np.full(SHAPE, 80.0)
+    blank[0, 0] = 81.0                     # a non-constant image, flat where matched
+    pts = np.array([[70.0, 60.0]])
+    r = icgn_refine(ref, blank, pts, pts, half_window=10, init_warp=[0, 0.01, 0, 0, 0, 0])
+    assert not r.converged[0] and np.isnan(r.pts).all()
+    assert "current image" in r.reason[0]
+
+
 def test_zncc_match_integer_and_subpixel(tex):
     shift = (3.3, -2.6)
     ref = _render(tex, SHAPE)
