@@ -10,7 +10,9 @@ sub-pixel subset matching (:mod:`semlab.subset`, ZNCC search then IC-GN with ZNS
 - :func:`refine_correspondences` refines hand clicks: the reference-view click defines the
   material point; the clicks in the other views are only starting guesses (~0.5 px error).
 - :func:`auto_match` finds correspondences automatically: SIFT features, Lowe's ratio test,
-  a global affine RANSAC, then a dense grid refined by IC-GN with a robust outlier filter.
+  a global affine RANSAC, dense optical flow for the initial guess (parallax of hundreds of
+  pixels on tall objects), then a dense grid refined by IC-GN with robust outlier filters
+  (texture, neighbours, forward–backward, multi-view rank 2).
 - :func:`merge_matches` merges two results (e.g. clicks and automatic matches).
 
 Conventions: images are 2D arrays indexed ``[row, col]``; points are ``(x, y)`` pixels,
@@ -244,7 +246,9 @@ def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, r
 
 def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length, half_width,
                      smooth_sigma_px, ref_coef, cur_coef, step_deg=15.0):
-    """IC-GN with thin rectangular subsets along the band direction of each point."""
+    """IC-GN with thin rectangular subsets along the band direction of each point.
+
+    ``grad`` is one initial warp (6,) for all points or one per point (n, 6)."""
     n = len(pts_ref)
     pts = np.full((n, 2), np.nan)
     sig = np.full(n, np.nan)
@@ -255,8 +259,9 @@ def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length
         off = oriented_subset(half_length, half_width, b * step_deg)
         # thin subsets pin the across-band gradient terms weakly and IC-GN converges
         # slowly; 1e-3 px is ample for a choice made at the ~0.03 px level
+        g = grad[sel] if np.ndim(grad) == 2 else grad
         r = icgn_refine(ref_img, img, pts_ref[sel], guess[sel], half_window=half_length,
-                        init_warp=grad, smooth_sigma_px=smooth_sigma_px, subset_offsets=off,
+                        init_warp=g, smooth_sigma_px=smooth_sigma_px, subset_offsets=off,
                         ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, max_iter=60,
                         tol_px=1e-3)
         pts[sel] = r.pts
@@ -435,6 +440,7 @@ def _to_uint8(img):
 
 
 def _features(img8, detector, n_max=20000):
+    """Keypoint (x, y) pixels (n, 2) and SIFT descriptors of an 8-bit image."""
     import cv2
 
     sift = cv2.SIFT_create(nfeatures=n_max)
@@ -450,15 +456,22 @@ def _features(img8, detector, n_max=20000):
     return xy, des
 
 
-def _sparse_matches(img_ref8, img8, detector, ratio):
-    """Ratio-tested descriptor matches (N, 2) ref positions and (N, 2) positions in img."""
+def _sparse_matches(img_ref8, img8, detector, ratio, n_max=20000, ref_cache=None):
+    """Ratio-tested descriptor matches (N, 2) ref positions and (N, 2) positions in img.
+
+    ``ref_cache`` (a dict) keeps the reference-view features between calls."""
     import cv2
 
     dets = ["sift", "shi-tomasi"] if detector == "both" else [detector]
     src, dst = [], []
     for d in dets:
-        xa, da = _features(img_ref8, d)
-        xb, db = _features(img8, d)
+        if ref_cache is not None and d in ref_cache:
+            xa, da = ref_cache[d]
+        else:
+            xa, da = _features(img_ref8, d, n_max)
+            if ref_cache is not None:
+                ref_cache[d] = (xa, da)
+        xb, db = _features(img8, d, n_max)
         if da is None or db is None or len(xa) < 2 or len(xb) < 2:
             continue
         knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
@@ -502,32 +515,278 @@ def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
     return np.abs(values - med) > np.maximum(n_mad * 1.4826 * mad, thresh_floor)
 
 
+def _noise_sigma(img):
+    """Robust standard deviation of white noise in an image (Immerkær 1996, "Fast noise
+    variance estimation", CVIU 64(2)): the 3×3 mask ``[[1,-2,1],[-2,4,-2],[1,-2,1]]`` cancels
+    locally linear (and largely smooth) image content; its response to white noise of
+    std σ has std 6σ. The median absolute response (÷ 0.6745) makes it robust to edges."""
+    from scipy import ndimage
+
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], float)
+    r = ndimage.convolve(np.asarray(img, float), k, mode="reflect")[1:-1, 1:-1]
+    return float(1.4826 * np.median(np.abs(r)) / 6.0)
+
+
+def _subset_std(img, half_window, pts):
+    """Intensity standard deviation of the ``(2h+1)²`` subset at each (x, y) point."""
+    import cv2
+
+    k = 2 * int(half_window) + 1
+    a = np.asarray(img, np.float64)
+    mu = cv2.boxFilter(a, -1, (k, k), borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(a * a, -1, (k, k), borderType=cv2.BORDER_REFLECT)
+    sd = np.sqrt(np.maximum(m2 - mu * mu, 0.0))
+    ij = np.rint(pts).astype(int)
+    return sd[ij[:, 1], ij[:, 0]]
+
+
+def _norm8(img, sigma_px, eps):
+    """Local contrast normalisation to 8 bits: ``(I - G*I) / (sqrt(G*(I - G*I)²) + eps)``
+    with a Gaussian ``G`` of ``sigma_px``, mapped to 128 ± 32 per local standard deviation.
+    Removes the smooth shading differences between SEM views before optical flow."""
+    import cv2
+
+    a = np.asarray(img, np.float32)
+    mu = cv2.GaussianBlur(a, (0, 0), sigma_px)
+    d = a - mu
+    sd = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px))
+    return np.clip(d / (sd + np.float32(eps)) * 32 + 128, 0, 255).astype(np.uint8)
+
+
+def _sample(field, pts):
+    """Bilinear samples of an (H, W) or (H, W, C) float field at (x, y) points:
+    (n,) or (n, C) array (border values replicated)."""
+    import cv2
+
+    f = np.ascontiguousarray(field, dtype=np.float32)
+    n = len(pts)
+    cols = 1024                        # remap maps must stay below 32767 rows
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = pts[:, 0], pts[:, 1]
+    out = cv2.remap(f, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    out = out.reshape(rows * cols, -1)[:n].astype(np.float64)
+    return out[:, 0] if f.ndim == 2 else out
+
+
+def _flow_field(ref_img, img, M, half_window, eps):
+    """Dense optical flow from the reference view to ``img`` mapped into its frame.
+
+    View ``img`` is mapped into the reference frame by the global affine ``M`` (ref → img),
+    both views are contrast-normalised (:func:`_norm8`, regulariser ``eps`` grey levels)
+    and the residual displacement ``f(x)`` (parallax and what the affine misses) is found by
+    DIS optical flow (Kroeger et al. 2016, "Fast optical flow using dense inverse search",
+    ECCV; coarse to fine, so it follows parallax of hundreds of pixels that varies over the
+    image), forward and backward.
+
+    Returns
+    -------
+    warped : (H, W) float32 array, ``img`` mapped into the reference frame by ``M``.
+    fwd, bwd : (H, W, 2) float32 arrays, flow reference → warped and back, pixels.
+    """
+    import cv2
+
+    hgt, wid = ref_img.shape
+    warped = cv2.warpAffine(np.asarray(img, np.float32), M.astype(np.float64), (wid, hgt),
+                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                            borderMode=cv2.BORDER_REFLECT)
+    sig = 2.0 * half_window
+    a8 = _norm8(ref_img, sig, eps)
+    b8 = _norm8(warped, sig, eps)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setFinestScale(0)
+    fwd = dis.calc(a8, b8, None)
+    bwd = dis.calc(b8, a8, None)
+    return warped, fwd, bwd
+
+
+def _aligned_noise(ref_img, warped, fwd, half_window):
+    """Image noise σ (grey levels) from the difference of two aligned views.
+
+    ``warped`` is resampled along the flow onto the reference; both are high-passed
+    (minus a Gaussian of ``2 half_window``, which removes shading differences) and the
+    second is scaled to the first by least squares. The views share the texture but not the
+    noise, so ``1.4826 MAD(difference) / √2`` estimates the noise of one view whatever its
+    spectrum (e.g. correlated noise of a resampled image, where single-image estimators
+    see almost none); mis-registered edges are outliers of the MAD.
+    """
+    import cv2
+
+    hgt, wid = ref_img.shape
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float32)
+    al = cv2.remap(warped, xx + fwd[..., 0], yy + fwd[..., 1], cv2.INTER_LINEAR,
+                   borderMode=cv2.BORDER_REFLECT)
+    a = np.asarray(ref_img, np.float32)
+    sig = 2.0 * half_window
+    ha = a - cv2.GaussianBlur(a, (0, 0), sig)
+    hb = al - cv2.GaussianBlur(al, (0, 0), sig)
+    m = 2 * half_window
+    ha, hb = ha[m:-m, m:-m], hb[m:-m, m:-m]
+    g = float((ha * hb).sum() / max(float((hb * hb).sum()), 1e-30))
+    d = (ha - g * hb).ravel()
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def _flow_guess(M, fwd, bwd, grid, half_window):
+    """Initial guesses of grid points from the flow of :func:`_flow_field`.
+
+    The guess of grid point ``x`` is ``M(x + f(x))`` and its initial warp gradient
+    ``A (I + ∇f) − I`` (``A`` the linear part of ``M``, ``∇f`` of the flow smoothed over a
+    subset).
+
+    Returns
+    -------
+    guess : (n, 2) array of (x, y) pixels in the view.
+    init_warp : (n, 6) array ``(0, du/dx, du/dy, 0, dv/dx, dv/dy)``.
+    fb_err : (n,) array
+        Forward–backward inconsistency ``|f(x) + b(x + f(x))|`` of the flow (pixels): large
+        where the flow is unreliable (occlusions, no texture).
+    """
+    import cv2
+
+    f = _sample(fwd, grid)
+    fb_err = np.hypot(*(f + _sample(bwd, grid + f)).T)
+    guess = _apply_affine(M, grid + f)
+    # flow gradient over a subset (Gaussian-smoothed central differences)
+    sm = cv2.GaussianBlur(fwd, (0, 0), max(1.0, half_window / 2))
+    gx = cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    gy = cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+    dfx = _sample(gx, grid)        # (n, 2): (du/dx, dv/dx)
+    dfy = _sample(gy, grid)        # (n, 2): (du/dy, dv/dy)
+    J = np.stack([np.stack([dfx[:, 0], dfy[:, 0]], 1), np.stack([dfx[:, 1], dfy[:, 1]], 1)], 1)
+    G = np.einsum("ij,njk->nik", M[:, :2], np.eye(2) + J) - np.eye(2)
+    G = np.clip(G, -0.45, 0.45)
+    z = np.zeros(len(grid))
+    init = np.column_stack([z, G[:, 0, 0], G[:, 0, 1], z, G[:, 1, 0], G[:, 1, 1]])
+    return guess, init, fb_err
+
+
+def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
+                       img_coef, ref_coef, max_iter, tol_px):
+    """Distance (pixels) between ``pts_ref`` and the backward IC-GN match of ``pts`` (in
+    ``img``) into ``ref_img``, started at ``pts_ref`` with the inverse of the forward warp
+    gradient (NaN where the backward match fails)."""
+    g = np.where(np.isfinite(warp), warp, 0.0)
+    A = np.stack([np.stack([1 + g[:, 1], g[:, 2]], 1), np.stack([g[:, 4], 1 + g[:, 5]], 1)], 1)
+    det = np.linalg.det(A)
+    A[np.abs(det) < 1e-6] = np.eye(2)
+    B = np.linalg.inv(A) - np.eye(2)
+    z = np.zeros(len(pts))
+    init = np.column_stack([z, B[:, 0, 0], B[:, 0, 1], z, B[:, 1, 0], B[:, 1, 1]])
+    r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
+                    smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
+                    cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)
+    return np.hypot(*(r.pts - pts_ref).T)
+
+
+def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
+    """Per-point residual (pixels) of the multi-view x coordinates to a rank-2 model.
+
+    For an affine camera tilted about an axis near the image y axis, the x coordinates of a
+    point in V views are ``u_i = cos θ_i x + sin θ_i z + ε_i y + t_i``: after removing the
+    linear dependence on the reference-view y (a slightly rotated tilt axis) and the means,
+    the N × V matrix of x coordinates has rank 2 (Tomasi & Kanade 1992; Hartley & Zisserman
+    2nd ed. section 18.2). The rank-2 fit is made on ``mask`` points, re-fitted without
+    the points beyond ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the
+    RMS over views of its distance to the fitted model. Needs V >= 3 (else zeros).
+
+    Returns
+    -------
+    res : (N,) array of residuals in pixels (NaN where a coordinate is NaN).
+    rms : float, RMS residual over the final inliers.
+    """
+    n, v = pts.shape[:2]
+    res = np.zeros(n)
+    if v < 3 or mask.sum() < 8:
+        return res, 0.0
+    U = pts[:, :, 0]
+    y = pts[:, ref, 1]
+    D = np.column_stack([U, y])                 # (N, V+1)
+    fin = np.all(np.isfinite(D), 1)
+    use = mask & fin
+    for _ in range(n_iter):
+        mu = D[use].mean(0)
+        Dc = D - mu
+        # remove the y dependence (regression of each u_i on y), then rank 2
+        yc = Dc[:, -1]
+        beta = (Dc[use, :-1] * yc[use, None]).sum(0) / max((yc[use] ** 2).sum(), 1e-12)
+        R = Dc[:, :-1] - yc[:, None] * beta
+        _, _, vt = np.linalg.svd(R[use], full_matrices=False)
+        P = vt[:2].T @ vt[:2]
+        E = R - R @ P
+        res = np.sqrt(np.mean(E ** 2, axis=1))
+        r_in = res[use]
+        thr = max(n_mad * 1.4826 * np.median(np.abs(r_in - np.median(r_in))) + np.median(r_in),
+                  floor_px)
+        new = mask & fin & (res <= thr)
+        if new.sum() < 8 or np.array_equal(new, use):
+            break
+        use = new
+    res[~fin] = np.nan
+    return res, float(np.sqrt(np.mean(res[use] ** 2)))
+
+
+def _choose_smoothing(ref_img, img, pts_ref, guess, guess0, init_w, half_window, min_zncc,
+                      seed, n_trial=200, sigma_px=1.0):
+    """Gaussian pre-smoothing for noisy views: 0 if unsmoothed IC-GN converges with
+    ``zncc >= min_zncc`` on at least half of a random sample of ``n_trial`` points, else
+    ``sigma_px`` (on noisy SEM images the unsmoothed ZNSSD cost is too rough to converge;
+    Pan 2013, Opt. Lasers Eng. 51(10))."""
+    n = len(pts_ref)
+    rng = np.random.default_rng(seed)
+    k = rng.choice(n, min(n, n_trial), replace=False)
+    g = np.where(np.isfinite(guess[k]), guess[k], guess0[k])
+    r = icgn_refine(ref_img, img, pts_ref[k], g, half_window=half_window, init_warp=init_w[k],
+                    max_iter=30, tol_px=1e-3)
+    ok = r.converged & (r.zncc >= min_zncc)
+    return 0.0 if ok.mean() >= 0.5 else float(sigma_px)
+
+
 def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, half_window=10,
                min_zncc=0.9, max_points=None, seed=0, progress=True, *, search_px=3,
-               smooth_sigma_px=0.0, consistency_px=0.3, band_aware=True,
-               band_half_width_px=3, kappa=1.0, max_roughness_px=0.08):
+               smooth_sigma_px=None, consistency_px=0.3, band_aware=True,
+               band_half_width_px=3, kappa=1.0, max_roughness_px=0.08, dense_init=True,
+               wide_search_px=10, min_texture_snr=1.0, multiview_px=0.3, max_iter=60,
+               tol_px=1e-3, max_features=5000, backward_px=0.1):
     """Automatic dense correspondences between SEM views.
 
     1. Sparse features (SIFT, Lowe 2004 IJCV 60(2); or Shi–Tomasi corners 1994 described by
        SIFT; or both) matched with Lowe's ratio test.
     2. A global 2D affine map per view by RANSAC (``cv2.estimateAffine2D``; Fischler &
-       Bolles 1981), threshold 3 px (it must pass the parallax of the heights), then a second
-       test on the residual across the parallax direction (the affine epipolar constraint,
-       Hartley & Zisserman 2nd ed. section 14.2): the parallax direction is the principal
-       direction of the inlier residuals and matches more than 1 px off it are dropped.
-       The affine fundamental matrix alone is nearly degenerate with ≤ 2 px of parallax and
-       accepts mismatches along the band direction, hence the dense step:
-    3. A regular grid (``spacing_px``) in the reference view; initial guesses from the
-       global affine plus a smooth parallax (median of the residuals of the 8 nearest sparse
-       inliers), ZNCC search ``±search_px``, IC-GN refinement.
-    4. Band-aware refinement (``band_aware``): each point is matched again with a thin
+       Bolles 1981), threshold 3 px, then a second test on the residual across the parallax
+       direction (the affine epipolar constraint, Hartley & Zisserman 2nd ed. section 14.2):
+       matches more than 1 px off the principal direction of the inlier residuals are
+       dropped and the affine map is re-fitted.
+    3. A regular grid (``spacing_px``) in the reference view. Points whose subset has too
+       little texture (featureless background: subset standard deviation, noise removed,
+       below ``min_texture_snr`` times the image noise) are flagged ``"low texture"`` and
+       not matched. The noise is estimated from the difference of the first view pair
+       aligned by the flow of step 4 (whatever its spectrum), or without ``dense_init``
+       by Immerkær's white-noise estimator.
+    4. Dense initial guess (``dense_init``): the view is mapped into the reference frame by
+       the affine, both are contrast-normalised and DIS optical flow (Kroeger et al. 2016,
+       coarse to fine) gives each grid point its position and local warp gradient, to about
+       a pixel even where the parallax reaches hundreds of pixels and varies strongly. Where
+       the forward and backward flows disagree by more than 1 px the ZNCC search radius is
+       ``wide_search_px`` instead of ``search_px``. (With ``dense_init=False`` the guess is
+       the affine plus the median parallax of the 8 nearest sparse matches: only good for
+       small, slowly varying parallax.)
+    5. ZNCC search, then IC-GN refinement (:func:`semlab.subset.icgn_refine`) of an affine
+       subset started from the flow's warp gradient.
+    6. Band-aware refinement (``band_aware``): each point is matched again with a thin
        subset along the local direction of the parallax bands (structure tensor of the
        dense parallax field) and that estimate is kept where the square subset disagrees
        with it (see :func:`refine_correspondences`).
-    5. Outlier filter: convergence, ``zncc >= min_zncc`` in every view, local consistency
+    7. Outlier filter: convergence, ``zncc >= min_zncc`` in every view, local consistency
        of the parallax and cross-parallax residuals against the 8 nearest grid neighbours
-       (median ± max(4 × 1.4826 MAD, ``consistency_px``)), repeated once, and a local
-       planarity test of the parallax (``max_roughness_px``).
+       (median ± max(4 × 1.4826 MAD, ``consistency_px``)), repeated once, a local
+       planarity test of the parallax (``max_roughness_px``), and with 3 or more views the
+       multi-view test: the x coordinates of a point in all views must fit the rank-2
+       affine model of a tilt series (see ``multiview_px``).
+    8. Forward–backward test (``backward_px``): the accepted points matched back from each
+       view must return to their reference position.
 
     Parameters
     ----------
@@ -553,8 +812,11 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         Show progress bars.
     search_px : int
         ZNCC search radius around the predicted position.
-    smooth_sigma_px : float
-        Gaussian pre-smoothing for IC-GN (see :func:`semlab.subset.icgn_refine`).
+    smooth_sigma_px : float or None
+        Gaussian pre-smoothing for IC-GN (see :func:`semlab.subset.icgn_refine`). None
+        (default) chooses it on the first view pair: 0 when unsmoothed IC-GN converges with
+        ``zncc >= min_zncc`` on at least half of 200 random textured grid points, else
+        1.0 px (noisy real SEM images, where the unsmoothed cost is too rough).
     consistency_px : float
         Floor of the local-consistency threshold, pixels.
     band_aware, band_half_width_px, kappa
@@ -563,10 +825,33 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     max_roughness_px : float or None
         Points where the parallax field is not locally planar are marked invalid: the RMS
         residual (pixels) of a least-squares plane through the parallax of the point and
-        its 11 nearest accepted neighbours (about ±1.5 grid spacings) must not exceed this.
-        Near the sharp flanks of extrusions the parallax is not affine within any subset and
-        heights come out biased by tens of nm; these points are dropped here (they remain
-        reachable with :func:`refine_correspondences`). None keeps them.
+        its 11 nearest accepted neighbours (about ±1.5 grid spacings) must not exceed
+        ``max(max_roughness_px, 2 × median sigma_px)`` (the second term keeps the test
+        above the random matching error of noisy images). Near the sharp flanks of
+        extrusions the parallax is not affine within any subset and heights come out biased
+        by tens of nm; these points are dropped here (they remain reachable with
+        :func:`refine_correspondences`). None keeps them.
+    dense_init : bool
+        Initial guesses from dense optical flow (step 4); False uses the sparse prior.
+    wide_search_px : int
+        ZNCC search radius where the flow is uncertain.
+    min_texture_snr : float
+        Texture threshold of step 3 (0 matches every point).
+    multiview_px : float or None
+        With V >= 3 views: points whose rank-2 residual (RMS over views, pixels) exceeds
+        ``max(median + 4 × 1.4826 MAD, multiview_px)`` of the accepted points are marked
+        invalid. None skips the test.
+    max_iter, tol_px
+        IC-GN iteration limit and convergence tolerance (pixels).
+    backward_px : float or None
+        Forward–backward check: each accepted point is matched back from the view to the
+        reference (IC-GN started at the reference position with the inverse warp) and
+        marked invalid when it does not return to within ``backward_px`` pixels (a second
+        IC-GN pass over the accepted points; None skips it). It removes points whose match
+        depends on the direction, e.g. subsets straddling occlusions or parallax edges.
+    max_features : int
+        At most this many sparse features per view (the strongest; they only fix the
+        global affine and, without ``dense_init``, the parallax prior).
 
     Returns
     -------
@@ -590,6 +875,12 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         raise SemlabError(f"ratio must be in (0, 1), got {ratio!r}")
     if not spacing_px > 0:
         raise SemlabError(f"spacing_px must be > 0, got {spacing_px!r}")
+    if smooth_sigma_px is not None and not smooth_sigma_px >= 0:
+        raise SemlabError(f"smooth_sigma_px must be None or >= 0, got {smooth_sigma_px!r}")
+    if backward_px is not None and not backward_px > 0:
+        raise SemlabError(f"backward_px must be None or > 0 pixels, got {backward_px!r}")
+    if not min_texture_snr >= 0:
+        raise SemlabError(f"min_texture_snr must be >= 0, got {min_texture_snr!r}")
     hgt, wid = ims[0].shape
     margin = half_window + search_px + 3
     xs = np.arange(margin, wid - margin, spacing_px, dtype=float)
@@ -606,19 +897,29 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         grid = grid[gidx]
     n = len(grid)
 
-    ref8 = _to_uint8(ims[ref])
-    ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
     out = np.full((n, v, 2), np.nan)
     out[:, ref] = grid
     zn = np.ones((n, v))
+    zn[:, [j for j in range(v) if j != ref]] = -1.0
     sig_x = np.zeros((n, v))
     valid = np.ones(n, bool)
     reason = np.full(n, "", dtype=object)
+
+    noise0 = _noise_sigma(ims[ref])        # white-noise estimate, regulariser of the flow
+    eps = max(noise0, 1e-3 * float(np.ptp(ims[ref])) + 1e-12)
+    sub_std = _subset_std(ims[ref], half_window, grid)
+    work = None
+
+    ref8 = _to_uint8(ims[ref])
+    ref_coef = None if smooth_sigma_px is None else prefilter_image(ims[ref], smooth_sigma_px)
     resid = {}
+    ref_cache = {}
+    fwd_state = {}
     for j in range(v):
         if j == ref:
             continue
-        src, dst = _sparse_matches(ref8, _to_uint8(ims[j]), detector, ratio)
+        src, dst = _sparse_matches(ref8, _to_uint8(ims[j]), detector, ratio, max_features,
+                                   ref_cache)
         if len(src) < 6:
             raise GeometryError(f"only {len(src)} feature matches between views {ref} and {j}; "
                                 "the views do not overlap or have too little texture")
@@ -630,49 +931,98 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
         eperp = np.array([-e[1], e[0]])
         keep = np.abs(rc @ eperp) < 1.0
-        s_src, s_res = src[inl][keep], res[keep]
+        s_src = src[inl][keep]
         if len(s_src) < 6:
             raise GeometryError(f"too few consistent feature matches between views {ref} and {j}")
         s_dst = dst[inl][keep]
         M = fit_affine(s_src, s_dst)
         s_res = s_dst - _apply_affine(M, s_src)
-        # smooth parallax field from the sparse inliers (median of nearest residuals)
-        kk = min(8, len(s_src))
-        _, nb = cKDTree(s_src).query(grid, k=kk)
-        nb = nb.reshape(n, kk)
-        par = np.median(s_res[nb] @ e, axis=1)
-        guess0 = _apply_affine(M, grid) + par[:, None] * e
         L = M[:, :2] - np.eye(2)
         grad = np.array([0, L[0, 0], L[0, 1], 0, L[1, 0], L[1, 1]])
-        guess, _ = zncc_match(ims[ref], ims[j], grid, guess0, half_window=half_window,
-                              search_px=search_px)
+        if dense_init:
+            warped, fwd, bwd = _flow_field(ims[ref], ims[j], M, half_window, eps)
+        if work is None:
+            # texture test on the reference view, with the noise seen between the views
+            noise = _aligned_noise(ims[ref], warped, fwd, half_window) if dense_init \
+                else noise0
+            contrast = np.sqrt(np.maximum(sub_std ** 2 - noise ** 2, 0.0))
+            textured = contrast >= min_texture_snr * noise
+            for i in np.flatnonzero(~textured):
+                reason[i] = (f"low texture: subset contrast {contrast[i]:.2f} < "
+                             f"min_texture_snr × noise = {min_texture_snr * noise:.2f} "
+                             "(featureless background?)")
+            valid &= textured
+            work = np.flatnonzero(textured)
+            gw = grid[work]
+        nw = len(work)
+        if nw == 0:       # every point flagged "low texture"
+            break
+        if dense_init:
+            guess0, init_w, fb = _flow_guess(M, fwd, bwd, gw, half_window)
+            # parallax direction from the dense field where the flow is reliable
+            d = guess0 - _apply_affine(M, gw)
+            rel = fb < 1.0
+            if rel.sum() >= 6:
+                dc = d[rel] - np.median(d[rel], axis=0)
+                _, _, vt = np.linalg.svd(dc, full_matrices=False)
+                e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
+                eperp = np.array([-e[1], e[0]])
+        else:
+            # smooth parallax field from the sparse inliers (median of nearest residuals)
+            kk = min(8, len(s_src))
+            _, nb = cKDTree(s_src).query(gw, k=kk)
+            par = np.median(s_res[nb.reshape(nw, kk)] @ e, axis=1)
+            guess0 = _apply_affine(M, gw) + par[:, None] * e
+            init_w = np.broadcast_to(grad, (nw, 6))
+            fb = np.zeros(nw)
+        guess = np.full((nw, 2), np.nan)
+        near = fb <= 1.0
+        for sel, rad in ((near, search_px), (~near, max(search_px, wide_search_px))):
+            if sel.any():
+                guess[sel], _ = zncc_match(ims[ref], ims[j], gw[sel], guess0[sel],
+                                           half_window=half_window, search_px=rad)
+        if smooth_sigma_px is None:
+            smooth_sigma_px = _choose_smoothing(ims[ref], ims[j], gw, guess, guess0, init_w,
+                                                half_window, min_zncc, seed)
+            ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
         cur_coef = prefilter_image(ims[j], smooth_sigma_px)
-        r = icgn_refine(ims[ref], ims[j], grid, np.where(np.isfinite(guess), guess, guess0),
-                        half_window=half_window, init_warp=grad, smooth_sigma_px=smooth_sigma_px,
-                        ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, progress=progress)
+        r = icgn_refine(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
+                        half_window=half_window, init_warp=init_w,
+                        smooth_sigma_px=smooth_sigma_px, ref_prefiltered=ref_coef,
+                        cur_prefiltered=cur_coef, progress=progress, max_iter=max_iter,
+                        tol_px=tol_px)
         ok_j = r.converged & (r.zncc >= min_zncc)
         pts_j, sig_j = r.pts, r.sigma_px[:, 0]
         if band_aware and ok_j.sum() >= 6:
-            par = np.where(ok_j, (r.pts - _apply_affine(M, grid)) @ e, np.nan)
-            ang, _, _ = _band_orientation(grid, grid, par, 2.0 * half_window)
+            par = np.where(ok_j, (r.pts - _apply_affine(M, gw)) @ e, np.nan)
+            ang, _, _ = _band_orientation(gw, gw, par, 2.0 * half_window)
             sel = np.flatnonzero(ok_j)
+            warp_sel = np.where(np.isfinite(r.warp[sel]), r.warp[sel], init_w[sel])
             o_pts, o_sig, o_zn = _oriented_refine(
-                ims[ref], ims[j], grid[sel], r.pts[sel], grad, ang[sel], 2 * half_window,
+                ims[ref], ims[j], gw[sel], r.pts[sel], warp_sel, ang[sel], 2 * half_window,
                 band_half_width_px, smooth_sigma_px, ref_coef, cur_coef)
             c_pts, c_sig, _ = _combine(r.pts[sel], sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
                                        kappa)
             pts_j, sig_j = pts_j.copy(), sig_j.copy()
             pts_j[sel], sig_j[sel] = c_pts, c_sig
-        out[:, j] = pts_j
-        zn[:, j] = r.zncc
-        sig_x[:, j] = sig_j
-        bad = ~r.converged
-        reason[bad] = [f"view {j}: {w}" for w in r.reason[bad]]
-        low = r.converged & (r.zncc < min_zncc)
-        reason[low] = [f"view {j}: zncc {z:.2f} < min_zncc {min_zncc}" for z in r.zncc[low]]
-        valid &= ok_j
-        rr = pts_j - _apply_affine(M, grid)
+        out[work, j] = pts_j
+        zn[work, j] = r.zncc
+        sig_x[work, j] = sig_j
+        for k in np.flatnonzero(~ok_j):
+            i = work[k]
+            if not r.converged[k]:
+                why = r.reason[k]
+            else:
+                why = f"zncc {r.zncc[k]:.2f} < min_zncc {min_zncc}"
+            if valid[i]:
+                reason[i] = f"view {j}: {why}"
+        valid[work[~ok_j]] = False
+        rr = out[:, j] - _apply_affine(M, grid)
         resid[j] = (rr @ e, rr @ eperp)
+        if backward_px is not None:
+            warp_full = np.full((n, 6), np.nan)
+            warp_full[work] = np.where(np.isfinite(r.warp), r.warp, init_w)
+            fwd_state[j] = (cur_coef, warp_full)
 
     # local consistency of parallax and cross-parallax against grid neighbours (twice)
     for _ in range(2):
@@ -686,18 +1036,43 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
                     if valid[i]:
                         reason[i] = f"view {j}: {name} inconsistent with its neighbours"
                 valid[idx[out_l]] = False
+    others = [j for j in range(v) if j != ref]
+    sigma = np.sqrt(np.mean(sig_x[:, others] ** 2, axis=1))
     if max_roughness_px is not None and valid.sum() >= 12:
         idx = np.flatnonzero(valid)
+        thr = max(max_roughness_px, 2.0 * float(np.median(sigma[idx])))
         for j, (pa, _) in resid.items():
             _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True)
-            bad = rough > max_roughness_px
+            bad = rough > thr
             for i, rr in zip(idx[bad], rough[bad]):
                 if valid[i]:
                     reason[i] = (f"view {j}: parallax not locally planar (plane RMS {rr:.2f} px "
-                                 f"> max_roughness_px {max_roughness_px}: steep flank)")
+                                 f"> {thr:.2f} px: steep flank)")
             valid[idx[bad]] = False
-    others = [j for j in range(v) if j != ref]
-    sigma = np.sqrt(np.mean(sig_x[:, others] ** 2, axis=1))
+    if backward_px is not None:
+        for j, (coef_j, warp_j) in fwd_state.items():
+            idx = np.flatnonzero(valid)
+            if len(idx) == 0:
+                break
+            fb_d = _backward_distance(ims[j], ims[ref], out[idx, j], grid[idx], warp_j[idx],
+                                      half_window, smooth_sigma_px, coef_j, ref_coef,
+                                      max_iter, tol_px)
+            bad = ~(fb_d <= backward_px)
+            for i, dd in zip(idx[bad], fb_d[bad]):
+                reason[i] = (f"view {j}: forward–backward mismatch "
+                             + ("(backward match failed)" if np.isnan(dd) else
+                                f"{dd:.2f} px > backward_px {backward_px}"))
+            valid[idx[bad]] = False
+    if multiview_px is not None and v >= 3 and valid.sum() >= 8:
+        mres, _ = _multiview_residual(out, ref, valid)
+        r_in = mres[valid]
+        thr = max(np.median(r_in) + 4 * 1.4826 * np.median(np.abs(r_in - np.median(r_in))),
+                  multiview_px)
+        bad = valid & ~(mres <= thr)
+        for i in np.flatnonzero(bad):
+            reason[i] = (f"views inconsistent: x coordinates off the rank-2 tilt-series model "
+                         f"by {mres[i]:.2f} px > {thr:.2f} px")
+        valid &= ~bad
     sigma[~valid] = np.nan
     if progress:
         from tqdm.auto import tqdm

@@ -6,6 +6,8 @@ ribbons 0.1–0.3 µm high. View i at tilt θi shows at pixel (u, v) the materia
 ``x cos θ + z(x, y) sin θ = s (u − cx)``, ``y = s (v − cy)`` (fixed-point iteration).
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -235,5 +237,117 @@ def test_bad_input_raises(stereo):
         auto_match(ims[0], progress=False)
     with pytest.raises(SemlabError):
         auto_match(ims, detector="orb", progress=False)
+    with pytest.raises(SemlabError):
+        auto_match(ims, smooth_sigma_px=-1.0, progress=False)
+    with pytest.raises(SemlabError):
+        auto_match(ims, backward_px=0.0, progress=False)
+    with pytest.raises(SemlabError):
+        auto_match(ims, min_texture_snr=-1.0, progress=False)
     with pytest.raises(GeometryError):
         fit_affine(np.array([[0, 0], [1, 1], [2, 2.0]]), np.zeros((3, 2)))
+
+
+# --------------------------------------------------------------------------- large parallax
+class DomeScene(Scene):
+    """The textured scene on a tall Gaussian dome: 15–45 px of parallax at ±5°."""
+
+    def __init__(self, amp_um=8.0, radius_um=5.0, shape=(300, 400), seed=5, margin_px=80):
+        super().__init__(seed=seed, shape=shape)
+        rng = np.random.default_rng(seed + 100)
+        h, w = shape
+        # texture raster wide enough for the material seen under the tilted dome
+        self.x0 = -(w / 2 + margin_px) * S_UM
+        self.y0 = -(h / 2 + margin_px) * S_UM
+        tex = ndimage.gaussian_filter(
+            rng.standard_normal((2 * (h + 2 * margin_px), 2 * (w + 2 * margin_px))), 2.6)
+        self.coef = ndimage.spline_filter(tex / tex.std(), order=3)
+        self.amp, self.rad = amp_um, radius_um
+
+    def z(self, x, y):
+        return self.amp * np.exp(-(np.asarray(x) ** 2 + np.asarray(y) ** 2) / (2 * self.rad ** 2))
+
+
+@pytest.fixture(scope="module")
+def dome():
+    sc = DomeScene()
+    return sc, [sc.render(TILTS[0], seed=1), sc.render(TILTS[1], gain=0.8, offset=12, seed=2)]
+
+
+def test_auto_match_large_parallax(dome):
+    sc, ims = dome
+    h, w = sc.shape
+    vv, uu = np.mgrid[0:h:8, 0:w:8]
+    par = np.diff(np.stack([sc.project(*sc.material(uu.ravel(), vv.ravel(), TILTS[0]), t)[:, 0]
+                            for t in TILTS]), axis=0)
+    assert np.ptp(par) > 25                   # parallax varies by tens of pixels
+    new = auto_match(ims, progress=False)
+    old = auto_match(ims, progress=False, dense_init=False)   # sparse parallax prior
+    assert new.valid.mean() >= 0.75
+    assert old.valid.mean() < 0.6 and new.valid.sum() > 1.5 * old.valid.sum()
+    v = new.only_valid()
+    x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
+    err_px = np.hypot(*(v.pts[:, 1] - sc.project(x, y, TILTS[1])).T)
+    assert np.median(err_px) < 0.1 and err_px.max() < 0.3
+    err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+    assert np.sqrt(np.mean(err ** 2)) < 0.02 and np.abs(err).max() < 0.06
+    # the forward-backward test held for every accepted point
+    from semlab.subset import icgn_refine
+    back = icgn_refine(ims[1], ims[0], v.pts[:, 1], v.pts[:, 0], smooth_sigma_px=0.0)
+    assert np.all(np.hypot(*(back.pts - v.pts[:, 0]).T) < 0.15)
+
+
+def test_low_texture_points_are_flagged(stereo):
+    sc, ims = stereo
+    rng = np.random.default_rng(9)
+    flat = [im.copy() for im in ims]
+    for im in flat:              # a featureless strip (noise only) on the left of both views
+        im[:, :90] = im[:, 90:].mean() + rng.normal(0, 0.4, (im.shape[0], 90))
+    a = auto_match(flat, spacing_px=8, progress=False, band_aware=False)
+    x = a.pts[:, 0, 0]
+    inside = x < 90 - 10 - 1
+    assert inside.sum() > 20
+    assert not a.valid[inside].any()
+    assert all(r.startswith("low texture") for r in a.reason[inside])
+    outside = x > 90 + 20
+    assert a.valid[outside].mean() > 0.7
+    assert not any(r.startswith("low texture") for r in a.reason[outside])
+
+
+def test_three_views_are_rank_two_consistent():
+    from semlab.reconstruct import estimate_tilts
+
+    sc = Scene(seed=2)
+    tilts = (-5.0, 0.0, 5.0)
+    ims = [sc.render(t, seed=k) for k, t in enumerate(tilts)]
+    a = auto_match(ims, spacing_px=10, progress=False, band_aware=False)
+    v = a.only_valid()
+    assert len(v) >= 150
+    est = estimate_tilts(v.pts, None, n_boot=0, progress=False)
+    assert est.residual_px < 0.05
+    assert np.allclose(np.diff(est.tilt_deg), np.diff(tilts), atol=0.3)
+    # each view matches its true position
+    x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], tilts[0])
+    for j in (1, 2):
+        assert np.median(np.hypot(*(v.pts[:, j] - sc.project(x, y, tilts[j])).T)) < 0.05
+
+
+QUARTZ = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_sem" / "quarz"
+
+
+def test_quartz_tilt_series():
+    if not QUARTZ.exists():
+        pytest.skip("real quartz data not present at ../shared/data/real_sem/quarz")
+    from semlab.io import read_image
+    from semlab.reconstruct import estimate_tilts
+
+    ims = [read_image(QUARTZ / f"Quarz_0{i}.png").data for i in (1, 2, 3)]
+    a = auto_match(ims, spacing_px=10, progress=False)
+    v = a.only_valid()
+    assert len(v) >= 1000
+    # the dark background around the grain is flagged, not silently dropped
+    corner = (a.pts[:, 0, 0] < 150) & (a.pts[:, 0, 1] > 1050)
+    assert corner.sum() > 50 and all(r.startswith("low texture") for r in a.reason[corner])
+    est = estimate_tilts(v.pts, None, n_boot=0, progress=False)
+    assert est.residual_px < 0.1
+    d = np.diff(est.tilt_deg)
+    assert np.all(d > 3) and np.all(d < 10)      # a monotonic series of a few degrees a step
