@@ -143,7 +143,8 @@ def bench_quartz():
         return None
     ims = [read_image(d / f"Quarz_0{i}.png").data for i in (1, 2, 3)]
     t0 = time.perf_counter()
-    m = matching.auto_match(ims, progress=False)
+    # as semlab.pipeline.choose_tilts: square subsets, the middle view as reference
+    m = matching.auto_match(ims, ref_view=1, band_aware=False, progress=False)
     pts = m.pts[m.valid]
     est = reconstruct.estimate_tilts(pts, None, progress=False)
     # heights from each pair with the estimated tilts, compared on the common points (px units)

@@ -31,6 +31,14 @@ from .errors import GeometryError, SemlabError
 AXIS_TOLERANCE_DEG = 0.2
 #: 1σ error assumed for hand clicks that were not refined (pixels).
 RAW_CLICK_SIGMA_PX = 0.5
+#: Dense strain grid: Gaussian pre-smoothing of its IC-GN (removes most of the interpolation
+#: bias that varies with the sub-pixel phase of the displacement and shows in its gradient),
+#: the lowest ZNCC a grid subset needs to enter the strain (subsets in textureless grain
+#: interiors scatter by 0.1-0.2 px), and the strain window in grid points (see
+#: semlab.strain.gradient_from_field).
+DENSE_SMOOTH_SIGMA_PX = 0.8
+DENSE_MIN_ZNCC = 0.95
+DENSE_WINDOW = 7
 
 
 @dataclass
@@ -412,14 +420,17 @@ def earliest_valid_frame(valid):
 
 
 def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
-                              grid_step_px=16, heights=None, progress=False):
+                              grid_step_px=16, heights=None, progress=False,
+                              dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
 
     Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
     length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
     disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
     the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
-    tracks); with ``U(x)`` the displacement as a function of end-state position,
+    tracks; subsets with ZNCC below ``dense_min_zncc`` are left out, and the gradient is the
+    plane fit over ``dense_window`` × ``dense_window`` grid points, a gauge of
+    ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
     ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
     (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
     out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
@@ -430,7 +441,7 @@ def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge
     dict of arrays: ``ref_frame``, ``gauge_length_um``, sparse ``pts_px`` (M, 2) last-frame
     positions, ``E_lsq`` (M, 2, 2), ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
     ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
-    ``max_shear``, ``zncc``, and ``E_surface`` when heights are given.
+    ``max_shear``, ``zncc``, ``dense_gauge_um``, and ``E_surface`` when heights are given.
     """
     from scipy.interpolate import griddata
 
@@ -466,12 +477,16 @@ def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge
     near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
     guess = np.where(np.isfinite(guess), guess, near)
     r = icgn_refine(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
-                    progress=progress)
+                    smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, progress=progress)
     u = (grid - r.pts) * s  # U(x) = x_end - X_ref, µm
     u[~r.converged] = np.nan
     ux = u[:, 0].reshape(GX.shape)
     uy = u[:, 1].reshape(GX.shape)
-    G = st.gradient_from_field(ux, uy, grid_step_px * s)  # ∂U/∂x (end-state coordinates)
+    good = (r.zncc >= dense_min_zncc).reshape(GX.shape)
+    # ∂U/∂x (end-state coordinates) over the strain window, good subsets only
+    G = st.gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan),
+                               grid_step_px * s, window=dense_window)
+    out["dense_gauge_um"] = dense_window * grid_step_px * s
     eye = np.eye(2)
     finite = np.all(np.isfinite(G), axis=(-2, -1))
     Fd = np.full(G.shape, np.nan)

@@ -164,15 +164,27 @@ def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
     return G
 
 
-def gradient_from_field(ux, uy, spacing_um):
-    """Displacement gradient of dense fields by central differences (``np.gradient``).
+def gradient_from_field(ux, uy, spacing_um, window=None, min_points=6):
+    """Displacement gradient of dense fields on a regular grid.
 
     Parameters
     ----------
     ux, uy : (H, W) arrays
-        Displacement components on a regular grid (rows = y, columns = x), in µm.
+        Displacement components on a regular grid (rows = y, columns = x), in µm; NaN marks
+        grid points without a (trustworthy) measurement.
     spacing_um : float or (2,) sequence
         Grid spacing (dx, dy) in µm (a float for both).
+    window : int, optional
+        ``None``: central differences (``np.gradient``; a NaN spreads to its neighbours).
+        An odd int >= 3: the gradient of the least-squares plane fitted to the finite values
+        in the ``window × window`` grid points around each point — the "strain window" of
+        DIC software (Pan et al. 2009, "Full-field strain measurement using a
+        two-dimensional Savitzky-Golay digital differentiator in digital image
+        correlation", Opt. Eng. 46(3)). It averages the matching noise over the window
+        (gauge length ``window × spacing``) and skips missing points; exact for a linear
+        field.
+    min_points : int
+        With ``window``: fewest finite points a window needs (else NaN), >= 3.
 
     Returns
     -------
@@ -188,13 +200,42 @@ def gradient_from_field(ux, uy, spacing_um):
     if not (np.isfinite(sp).all() and (sp > 0).all()):
         raise SemlabError(f"spacing_um must be positive, got {spacing_um!r}")
     dx, dy = sp
-    duxdy, duxdx = np.gradient(ux, dy, dx)
-    duydy, duydx = np.gradient(uy, dy, dx)
     G = np.empty(ux.shape + (2, 2))
-    G[..., 0, 0] = duxdx
-    G[..., 0, 1] = duxdy
-    G[..., 1, 0] = duydx
-    G[..., 1, 1] = duydy
+    if window is None:
+        duxdy, duxdx = np.gradient(ux, dy, dx)
+        duydy, duydx = np.gradient(uy, dy, dx)
+        G[..., 0, 0] = duxdx
+        G[..., 0, 1] = duxdy
+        G[..., 1, 0] = duydx
+        G[..., 1, 1] = duydy
+        return G
+    if int(window) != window or window < 3 or window % 2 == 0:
+        raise SemlabError(f"window must be an odd number of grid points >= 3, got {window!r}")
+    if min_points < 3:
+        raise SemlabError(f"min_points must be >= 3 (a plane has 3 parameters), got {min_points!r}")
+    from scipy import ndimage
+
+    k = int(window) // 2
+    oy, ox = np.mgrid[-k:k + 1, -k:k + 1].astype(float)
+    one = np.ones_like(ox)
+
+    def wsum(a, kern):  # Σ over the window of a(r + i, c + j) · kern(i, j)
+        return ndimage.correlate(a, kern, mode="constant", cval=0.0)
+
+    w = (np.isfinite(ux) & np.isfinite(uy)).astype(float)
+    s0, sx, sy = wsum(w, one), wsum(w, ox), wsum(w, oy)
+    sxx, sxy, syy = wsum(w, ox * ox), wsum(w, ox * oy), wsum(w, oy * oy)
+    N = np.stack([np.stack([s0, sx, sy], -1), np.stack([sx, sxx, sxy], -1),
+                  np.stack([sy, sxy, syy], -1)], -2)                     # (H, W, 3, 3)
+    det = np.linalg.det(N)
+    ok = (s0 >= min_points) & (det > 1e-9 * np.maximum(s0, 1.0) ** 3)
+    G[:] = np.nan
+    for i, u in enumerate((ux, uy)):
+        uw = np.where(w > 0, u, 0.0)
+        rhs = np.stack([wsum(uw, one), wsum(uw, ox), wsum(uw, oy)], -1)
+        sol = np.linalg.solve(N[ok], rhs[ok][..., None])[..., 0]
+        G[ok, i, 0] = sol[:, 1] / dx
+        G[ok, i, 1] = sol[:, 2] / dy
     return G
 
 
