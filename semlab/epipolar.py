@@ -143,7 +143,9 @@ def _unit(F):
 
 def _svd_padded(A):
     """Singular values and right vectors of A (..., M, 9), singular values padded to 9."""
-    _, s, Vt = np.linalg.svd(A, full_matrices=True)
+    # full U only when needed for a complete 9×9 Vt (M < 9): for tens of thousands of
+    # automatic matches a full M×M U would take minutes and gigabytes
+    _, s, Vt = np.linalg.svd(A, full_matrices=A.shape[-2] < 9)
     if s.shape[-1] < 9:
         pad = np.zeros(s.shape[:-1] + (9 - s.shape[-1],))
         s = np.concatenate([s, pad], axis=-1)

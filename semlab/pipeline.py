@@ -286,7 +286,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         raise SemlabError(f"{exp.toml_path}: no [stereo] table, so no heights to compute")
     views = exp.views()
     corr = exp.correspondences()
-    clicks = None if corr is None else corr.pts
+    clicks = None if corr is None or len(corr.pts) == 0 else corr.pts
     method = method or ("merged" if clicks is not None else "auto")
     pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress, **match_kw)
     notes = []

@@ -547,7 +547,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
     n_frames : int
         Frontal series frames, earliest first (0 for a stereo-only experiment).
     n_clicks : int
-        Hand-click-like correspondences (true positions + ``click_noise_px`` Gaussian noise).
+        Hand-click-like correspondences (true positions + ``click_noise_px`` Gaussian noise);
+        0: no correspondences file (automatic matching only).
     line_noise_px : float
         Click noise of the block's line end points.
     block_size : (H, W)
@@ -668,18 +669,21 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
             "description": "made by semlab synth; ground truth in truth/"}
     stereo_lines = []
     if tilts:
-        clicks = _choose_clicks(scene, parts, n_clicks, size, tilts, rng)
-        ccols = {"point_id": np.arange(len(clicks["xy_um"]))}
-        for i, t in enumerate(tilts):
-            p = project_points(scene, clicks["xy_um"], t, size)
-            p = p + rng.normal(0, click_noise_px, p.shape)
-            ccols[f"x{i}_px"], ccols[f"y{i}_px"] = np.round(p[:, 0], 2), np.round(p[:, 1], 2)
-        ccols["crack_id"] = clicks["crack_id"]
-        _write_csv(out / "annotations" / "correspondences.csv", ccols, blank_negative="crack_id")
+        if n_clicks > 0:
+            clicks = _choose_clicks(scene, parts, n_clicks, size, tilts, rng)
+            ccols = {"point_id": np.arange(len(clicks["xy_um"]))}
+            for i, t in enumerate(tilts):
+                p = project_points(scene, clicks["xy_um"], t, size)
+                p = p + rng.normal(0, click_noise_px, p.shape)
+                ccols[f"x{i}_px"], ccols[f"y{i}_px"] = np.round(p[:, 0], 2), np.round(p[:, 1], 2)
+            ccols["crack_id"] = clicks["crack_id"]
+            _write_csv(out / "annotations" / "correspondences.csv", ccols,
+                       blank_negative="crack_id")
         stereo_lines += ["[stereo]", f"views = {json.dumps(view_files)}",
                          *([f"tilt_deg = {json.dumps(tilts)}"] if tilt_in_toml else []),
                          'camera = "affine"',
-                         'correspondences = "annotations/correspondences.csv"']
+                         *(['correspondences = "annotations/correspondences.csv"']
+                           if n_clicks > 0 else [])]
         if write_block:
             views_json, block_truth = [], {"box_dims": list(BOX_DIMS), "views": []}
             for i, t in enumerate(tilts):

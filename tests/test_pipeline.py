@@ -39,3 +39,17 @@ def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path):
                 write_block=False, n_clicks=12)
     with pytest.raises(GeometryError, match="bas-relief"):
         pipeline.run_stereo(exp, method="refined", n_boot=0, progress=False)
+
+
+def test_empty_correspondences_file_means_automatic_matching(tmp_path):
+    """A correspondences CSV with a header and no rows (a picker session that saved nothing)
+    is treated as no clicks: automatic matching, not an error."""
+    exp = _make(tmp_path, seed=2, size=(160, 200), write_block=False, n_clicks=12)
+    csv = exp.stereo.correspondences_path
+    csv.write_text(csv.read_text().splitlines()[0] + "\n")
+    exp = experiment.load(exp.toml_path)
+    assert len(exp.correspondences().pts) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = pipeline.run_stereo(exp, n_boot=0, progress=False)
+    assert res.method == "auto" and len(res.pts) > 50
