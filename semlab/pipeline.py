@@ -306,13 +306,26 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         notes.append(f"tilt axis at {axis:.2f}° in the image (not along y): coordinates rotated")
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
     if exp.stereo.camera == "perspective":
-        notes.append("camera = perspective: heights still use the affine parallax model, which is "
-                     "exact for SEM at these magnifications; K and R from vanishing points are "
-                     "reported in calibration.json")
-    rec = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um, tilt_axis_deg=axis_used)
-    plane = surface.fit_reference_plane(rec.xyz_um)
-    z = surface.heights_above_plane(rec.xyz_um, plane)
-    xyz = np.column_stack([rec.xyz_um[:, :2], z])
+        if lines_cal is None:
+            raise GeometryError(
+                f"{exp.toml_path}: camera = 'perspective' needs the intrinsics K from "
+                "vanishing points: add [stereo] lines (see the README's lines.json), or use "
+                "camera = 'affine'")
+        if pts.shape[1] > 2:
+            notes.append("camera = perspective: heights from views 0 and 1 only")
+        xyz_p, R_p, t_p, tilt_p = reconstruct.heights_perspective(
+            pts[:, 0], pts[:, 1], lines_cal.K, exp.pixel_size_um)
+        calib["perspective"] = {"K": lines_cal.K, "R_1": R_p, "t_1_um": t_p,
+                                "tilt_difference_deg": tilt_p,
+                                "scale": "median depth = pixel_size_um * focal_px"}
+        notes.append("camera = perspective: z_err_um uses the affine parallax error model")
+        xyz_3d = xyz_p
+    else:
+        xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
+                                                tilt_axis_deg=axis_used).xyz_um
+    plane = surface.fit_reference_plane(xyz_3d)
+    z = surface.heights_above_plane(xyz_3d, plane)
+    xyz = np.column_stack([xyz_3d[:, :2], z])
     # raw clicks carry no matching estimate: assume the typical hand-click error
     sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
     z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)

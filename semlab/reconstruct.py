@@ -43,6 +43,7 @@ __all__ = [
     "estimate_tilts",
     "tilt_from_rotation",
     "triangulate_perspective",
+    "heights_perspective",
 ]
 
 TWO_VIEW_MESSAGE = (
@@ -708,3 +709,62 @@ def triangulate_perspective(K, F_or_E, x0, x1, essential=False):
             f"no (R, t) puts the majority of points in front of both cameras (best {good} of "
             f"{len(a)}): F/E or the matches are wrong, or x0/x1 are swapped")
     return x, r, t
+
+
+def heights_perspective(x0, x1, K, pixel_size_um, F=None):
+    """Metric 3D points of a surface from two calibrated perspective views.
+
+    For ``camera = "perspective"`` (low magnification, where the SEM is not a parallel
+    projection): the fundamental matrix (normalised eight-point, H&Z Alg. 11.1, unless
+    ``F`` is given), ``E = Kᵀ F K``, the pose and linear triangulation
+    (:func:`triangulate_perspective`). The reconstruction is known up to one scale (the
+    baseline); it is fixed by the pixel size: a pixel of ``pixel_size_um`` at the working
+    distance ``D`` means ``D = pixel_size_um · f`` (``f`` the focal length in pixels), so
+    the median depth of the points in camera 0 is set to ``D``.
+
+    Parameters
+    ----------
+    x0, x1 : (N, 2) arrays
+        Matched ``(x, y)`` pixels in views 0 and 1, N >= 8.
+    K : (3, 3) array
+        Intrinsics (e.g. from vanishing points, :func:`semlab.vanishing.calibrate_views`).
+    pixel_size_um : float
+        Pixel size on the sample at the working distance, µm.
+    F : (3, 3) array, optional
+        Fundamental matrix ``x1ᵀ F x0 = 0``.
+
+    Returns
+    -------
+    xyz_um : (N, 3) array
+        Points in the camera-0 frame in µm: x right, y down (as the image) and z towards
+        the camera (out of the surface), so that extrusions have larger z.
+    R : (3, 3) array, t : (3,) array
+        Pose of camera 1 relative to camera 0 (``t`` in µm).
+    tilt_deg : float
+        Rotation about the camera y axis between the views (:func:`tilt_from_rotation`).
+
+    Raises
+    ------
+    GeometryError
+        Fewer than 8 points, a degenerate eight-point problem (e.g. affine-looking views of
+        a nearly flat surface: use ``camera = "affine"``), or no consistent pose.
+    """
+    from .epipolar import fundamental_8point
+
+    a = np.asarray(x0, float)
+    b = np.asarray(x1, float)
+    s = _check_pixel_size(pixel_size_um)
+    if F is None:
+        try:
+            F = fundamental_8point(a, b)
+        except GeometryError as exc:
+            raise GeometryError(
+                f"camera = 'perspective': {exc}. The views look like parallel projections "
+                "(usual for SEM above ~1000x): use camera = 'affine'") from exc
+    X, R, t = triangulate_perspective(K, F, a, b)
+    f = float(np.sqrt(abs(np.linalg.det(np.asarray(K, float)[:2, :2]))))
+    depth = float(np.median(X[:, 2]))
+    k = s * f / depth
+    xyz = X * k
+    xyz[:, 2] = -xyz[:, 2]
+    return xyz, R, t * k, tilt_from_rotation(R)

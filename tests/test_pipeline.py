@@ -53,3 +53,64 @@ def test_empty_correspondences_file_means_automatic_matching(tmp_path):
         warnings.simplefilter("ignore")
         res = pipeline.run_stereo(exp, n_boot=0, progress=False)
     assert res.method == "auto" and len(res.pts) > 50
+
+
+def _perspective_experiment(tmp_path, noise_px=0.0, seed=0):
+    """A synthetic experiment whose correspondences are exact perspective projections of a
+    known surface with the block camera's K (which the lines.json recovers)."""
+    import json
+
+    from semlab.camera import project_perspective, rotation_about_axis
+
+    exp = _make(tmp_path, seed=seed, size=(384, 512), block_size=(384, 512), line_noise_px=0.0,
+                n_clicks=12)
+    K = np.array(json.loads((exp.truth_dir / "block.json").read_text())["K"])
+    s = exp.pixel_size_um
+    f = K[0, 0]
+    D = s * f                                       # working distance, µm
+    rng = np.random.default_rng(seed)
+    n = 300
+    x = rng.uniform(-5.5, 5.5, n)
+    y = rng.uniform(-4.0, 4.0, n)
+    h = 0.2 * np.sin(x) * np.cos(0.7 * y) + 0.1 * (np.abs(x - y) < 1)   # µm, out of the surface
+    world = np.column_stack([x, y, -h])            # camera z points into the surface
+    cols = {"point_id": np.arange(n)}
+    for i, t in enumerate((-5.0, 5.0)):
+        R = rotation_about_axis([0, 1, 0], np.deg2rad(t))
+        uv = project_perspective(world, K, R, np.array([0.0, 0.0, D]))
+        uv = uv + rng.normal(0, noise_px, uv.shape)
+        cols[f"x{i}_px"], cols[f"y{i}_px"] = uv[:, 0], uv[:, 1]
+    header = ",".join(cols)
+    rows = np.column_stack(list(cols.values()))
+    np.savetxt(exp.stereo.correspondences_path, rows, delimiter=",", header=header,
+               comments="", fmt=["%d"] + ["%.6f"] * (len(cols) - 1))
+    toml = exp.toml_path.read_text().replace('camera = "affine"', 'camera = "perspective"')
+    exp.toml_path.write_text(toml)
+    return experiment.load(exp.toml_path), h
+
+
+def test_perspective_camera_heights_from_vanishing_point_K(tmp_path):
+    exp, h = _perspective_experiment(tmp_path)
+    assert exp.stereo.camera == "perspective"
+    res = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
+    per = res.calibration["perspective"]
+    assert abs(per["tilt_difference_deg"] - 10.0) < 0.05
+    err = validation.height_errors(res.z_um, h, res.xyz_um[:, :2])
+    assert err["rmse_um"] < 0.002                   # exact input: K from exact lines only
+    # the affine model on the same strongly perspective clicks is far off
+    toml = exp.toml_path.read_text().replace('camera = "perspective"', 'camera = "affine"')
+    exp.toml_path.write_text(toml)
+    res_a = pipeline.run_stereo(experiment.load(exp.toml_path), method="raw", n_boot=0,
+                                progress=False)
+    err_a = validation.height_errors(res_a.z_um, h, res_a.xyz_um[:, :2])
+    assert err_a["rmse_um"] > 5 * err["rmse_um"]
+
+
+def test_perspective_camera_needs_lines(tmp_path):
+    exp, _ = _perspective_experiment(tmp_path)
+    toml = "\n".join(ln for ln in exp.toml_path.read_text().splitlines()
+                     if not ln.startswith("lines"))
+    exp.toml_path.write_text(toml)
+    with pytest.raises(GeometryError, match="perspective.*lines"):
+        pipeline.run_stereo(experiment.load(exp.toml_path), method="raw", n_boot=0,
+                            progress=False)
