@@ -50,9 +50,13 @@ __all__ = [
     "displacements",
     "displacement_history",
     "TRACKS_CSV_COLUMNS",
+    "TRACKS_CSV_EXTRA_COLUMNS",
 ]
 
 TRACKS_CSV_COLUMNS = ("track_id", "seed", "frame", "x_px", "y_px", "fb_error_px", "valid")
+#: Diagnostic columns written after the contract columns: the step's ZNCC, its predicted
+#: 1σ matching error (pixels) and how many frames the track has been suspended.
+TRACKS_CSV_EXTRA_COLUMNS = ("zncc", "sigma_px", "gap_frames")
 
 #: A frame whose robust intensity range (0.5-99.5 percentile) is below this fraction of its
 #: absolute level (or exactly zero) is treated as blank.
@@ -798,8 +802,9 @@ def tracks_to_records(tracks, seed_kind=None):
 
     Returns
     -------
-    list of dict with keys ``track_id, seed, frame, x_px, y_px, fb_error_px, valid``
-    (NaN positions where no estimate exists; ``valid`` is bool).
+    list of dict with keys ``track_id, seed, frame, x_px, y_px, fb_error_px, valid`` and
+    then ``zncc, sigma_px, gap_frames`` (NaN positions where no estimate exists; ``valid``
+    is bool).
     """
     kinds = tracks.seed_kind if seed_kind is None else np.asarray(list(seed_kind), dtype=object)
     if len(kinds) != tracks.n_tracks:
@@ -810,12 +815,16 @@ def tracks_to_records(tracks, seed_kind=None):
             rows.append({"track_id": i, "seed": str(kinds[i]), "frame": f,
                          "x_px": float(tracks.xy[f, i, 0]), "y_px": float(tracks.xy[f, i, 1]),
                          "fb_error_px": float(tracks.fb_error_px[f, i]),
-                         "valid": bool(tracks.valid[f, i])})
+                         "valid": bool(tracks.valid[f, i]),
+                         "zncc": float(tracks.zncc[f, i]),
+                         "sigma_px": float(tracks.sigma_px[f, i]),
+                         "gap_frames": int(tracks.gap_frames[f, i])})
     return rows
 
 
 def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
-    """Write ``tracks.csv`` (columns :data:`TRACKS_CSV_COLUMNS`).
+    """Write ``tracks.csv`` (columns :data:`TRACKS_CSV_COLUMNS`, then the diagnostic
+    :data:`TRACKS_CSV_EXTRA_COLUMNS`).
 
     Raises
     ------
@@ -829,11 +838,11 @@ def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
     rows = tracks_to_records(tracks, seed_kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(TRACKS_CSV_COLUMNS))
+        w = csv.DictWriter(fh, fieldnames=list(TRACKS_CSV_COLUMNS + TRACKS_CSV_EXTRA_COLUMNS))
         w.writeheader()
         for r in rows:
             r = dict(r)
-            for k in ("x_px", "y_px", "fb_error_px"):
+            for k in ("x_px", "y_px", "fb_error_px", "zncc", "sigma_px"):
                 r[k] = "" if not np.isfinite(r[k]) else f"{r[k]:.6f}"
             r["valid"] = int(r["valid"])
             w.writerow(r)

@@ -131,12 +131,16 @@ def test_records_csv_and_displacements(series, tmp_path):
     frames, seeds, true_xy = series
     tr = track_reverse(frames, seeds[:20], progress=False, seed_kind="stereo")
     rows = tracks_to_records(tr)
-    assert len(rows) == 20 * N_FRAMES and tuple(rows[0]) == TRACKS_CSV_COLUMNS
+    assert len(rows) == 20 * N_FRAMES and tuple(rows[0])[:7] == TRACKS_CSV_COLUMNS
+    assert tuple(rows[0])[7:] == ("zncc", "sigma_px", "gap_frames")
     assert [r["frame"] for r in rows[:N_FRAMES]] == list(range(N_FRAMES))
     p = write_tracks_csv(tmp_path / "tracks.csv", tr)
     with open(p) as fh:
         back = list(csv.DictReader(fh))
     assert len(back) == len(rows) and back[0]["seed"] == "stereo"
+    assert list(back[0])[:7] == list(TRACKS_CSV_COLUMNS)
+    last = back[N_FRAMES - 1]          # the reference (last) frame of track 0
+    assert float(last["zncc"]) == pytest.approx(1.0) and int(last["gap_frames"]) == 0
     assert float(back[N_FRAMES - 1]["x_px"]) == pytest.approx(seeds[0, 0], abs=1e-6)
     with pytest.raises(SemlabError, match="overwrite"):
         write_tracks_csv(p, tr)
