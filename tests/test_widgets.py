@@ -130,6 +130,55 @@ def test_figure_events_pick_accept_drag_undo_delete_save(tmp_path, no_matching):
     assert picker.point_id.tolist() == [0, 1]
 
 
+def test_drag_redraws_only_the_markers_and_matches_a_full_draw(no_matching):
+    """While dragging, each mouse move blits the markers over a saved background (no full
+    canvas draw), and what is on the canvas equals a full redraw of the same state."""
+    picker = CorrespondencePicker(_images(), F=F_AFFINE)
+    view = PickerFigure(picker)
+    fig, (a0, a1) = view.fig, view.axes
+    click(fig, a0, (20.0, 30.0))
+    click(fig, a1, (26.0, 31.0))
+    click(fig, a0, (50.0, 10.0))
+    key(fig, "a")
+    fig.canvas.draw()
+    full_draws = []
+    real_draw = fig.canvas.draw
+
+    def counting_draw(*a, **k):
+        full_draws.append(1)
+        return real_draw(*a, **k)
+
+    fig.canvas.draw = counting_draw
+    _send(fig, a1, "button_press_event", (26.0, 31.0))
+    full_draws.clear()
+    for xy in ((30.0, 35.0), (35.0, 40.0), (40.0, 44.0)):
+        _send(fig, a1, "motion_notify_event", xy)
+    assert len(full_draws) == 1                      # the background, once for 3 moves
+    assert view._bg is not None
+    blitted = np.asarray(fig.canvas.buffer_rgba()).copy()
+    np.testing.assert_allclose(picker.pts[0, 1], [40, 44], atol=1e-6)
+    # a full draw of the same state gives the same pixels, except where the epipolar line
+    # meets the axes frame (blitted lines are drawn over the frame, a full draw puts the
+    # frame on top)
+    for a in view._dynamic_artists():
+        a.set_animated(False)
+    real_draw()
+    diff = np.any(blitted != np.asarray(fig.canvas.buffer_rgba()), axis=-1)
+    assert diff.sum() < 50
+    # every differing pixel lies on an axes frame line
+    h = diff.shape[0]
+    r, c = np.nonzero(diff)
+    on_frame = np.zeros(len(r), bool)
+    for ax in view.axes:
+        x0, y0, w, hh = ax.get_window_extent().bounds
+        on_frame |= (np.abs(c[:, None] - np.array([x0, x0 + w])).min(1) <= 1.5)
+        on_frame |= (np.abs((h - r)[:, None] - np.array([y0, y0 + hh])).min(1) <= 1.5)
+    assert on_frame.all()
+    _send(fig, a1, "button_release_event", (40.0, 44.0))
+    assert view._bg is None and not any(a.get_animated() for a in view._dynamic_artists())
+    np.testing.assert_allclose(picker.pts[0, 1], [40, 44], atol=1e-6)
+
+
 def test_click_on_proposal_confirms_and_escape_drops(no_matching):
     picker = CorrespondencePicker(_images())
     view = PickerFigure(picker)
@@ -487,3 +536,62 @@ def test_line_picker_widget_family_toggle(tmp_path):
     data = json.loads((tmp_path / "lines.json").read_text())
     assert data["views"][0]["view"] == 0
     assert data["views"][0]["families"]["z"] == [[5, 5, 5, 40]]
+
+
+def test_screen_image_shows_the_visible_part_at_screen_resolution():
+    """Zoomed out, a full-size view is shown block-averaged (fewer pixels to resample on
+    every draw) with pixel centres kept at integer coordinates; zoomed in, the visible crop
+    is the image itself."""
+    import matplotlib.pyplot as plt
+
+    from semlab.widgets import _ScreenImage
+
+    rng = np.random.default_rng(0)
+    img = rng.random((1536, 2048))
+    fig, ax = plt.subplots(figsize=(4, 3), dpi=100)
+    try:
+        si = _ScreenImage(ax, img, cmap="gray")
+        fig.canvas.draw()
+        si.update()
+        c0, c1, r0, r1, k = si.key
+        assert k > 1 and (c0, r0) == (0, 0) and (c1, r1) == (2048, 1536)
+        shown = si.artist.get_array()
+        left, right, bottom, top = si.artist.get_extent()
+        assert (left, top) == (-0.5, -0.5)
+        assert shown.shape[1] * k == pytest.approx(right - left)
+        # block (2, 3) is the mean of its k × k pixels
+        assert shown[2, 3] == pytest.approx(img[2 * k:3 * k, 3 * k:4 * k].mean(), rel=1e-5)
+        # zoom into a 40 × 30 px region: full resolution, exact pixels, half-pixel extent
+        ax.set_xlim(100.5, 140.5)
+        ax.set_ylim(230.5, 200.5)
+        c0, c1, r0, r1, k = si.key
+        assert k == 1
+        np.testing.assert_array_equal(si.artist.get_array(), img[r0:r1, c0:c1].astype(np.float32))
+        assert tuple(si.artist.get_extent()) == (c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5)
+        assert c0 <= 101 and c1 >= 141 and r0 <= 201 and r1 >= 231
+        # the limits the user set are kept
+        assert ax.get_xlim() == (100.5, 140.5)
+    finally:
+        plt.close(fig)
+
+
+def test_click_proposal_matches_in_windows_like_on_whole_views():
+    """The default proposal (real sub-pixel matching) is computed in windows around the
+    guesses; it finds a known shift and agrees with matching on the whole views."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(7)
+    a = ndimage.gaussian_filter(rng.random((300, 420)), 2.0)
+    b = ndimage.shift(a, (-1.7, 3.3), order=3, mode="reflect")    # (rows, cols)
+    picker = CorrespondencePicker([a, b])
+    picker.add(0, (150.0, 120.0))
+    windowed = picker.pts[0, 1].copy()
+    np.testing.assert_allclose(windowed, [153.3, 118.3], atol=0.02)
+    whole = CorrespondencePicker([a, b])
+    whole.refine_window_px = 10_000
+    whole.add(0, (150.0, 120.0))
+    np.testing.assert_allclose(windowed, whole.pts[0, 1], atol=2e-3)
+    # near the image corner the window is shifted inside the image, not cut
+    picker.cancel()
+    picker.add(0, (18.0, 16.0))
+    np.testing.assert_allclose(picker.pts[0, 1], [21.3, 14.3], atol=0.05)
