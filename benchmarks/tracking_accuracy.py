@@ -136,8 +136,13 @@ def synthetic(rows, speed):
         print(f"(d) skipped: {exc}")
         return
     import csv
+    for scene_seed in (0, 1, 2):
+        _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv)
+
+
+def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
     with tempfile.TemporaryDirectory() as tmp:
-        toml = make_experiment(Path(tmp) / "exp", seed=0, tilts_deg=(), n_frames=6,
+        toml = make_experiment(Path(tmp) / "exp", seed=scene_seed, tilts_deg=(), n_frames=6,
                                progress=False)
         exp = load(toml)
         frames = exp.frames()
@@ -159,7 +164,8 @@ def synthetic(rows, speed):
             dt = time.perf_counter() - t0
             err = np.linalg.norm(tr.xy - true, axis=2)
             v0 = tr.valid[0]
-            rows.append((f"(d) synth series ({F} frames {w}x{h}), {method}", len(seeds),
+            rows.append((f"(d) synth series seed {scene_seed} ({F} frames {w}x{h}), {method}",
+                         len(seeds),
                          f"{tr.valid[:-1].mean():.3f} (frame 0: {v0.mean():.3f})", "-",
                          f"{np.sqrt(np.mean(err[0][v0] ** 2)):.3f}" if v0.any() else "-",
                          f"valid steps with error > 0.5 px: {int((tr.valid & (err > 0.5)).sum())}; "
@@ -171,7 +177,8 @@ def synthetic(rows, speed):
             t0 = time.perf_counter()
             track_reverse(frames, st, method=method, progress=False)
             dt = time.perf_counter() - t0
-            speed.append((f"synth {w}x{h}, Shi-Tomasi seeds, {method}", len(st), F - 1, dt,
+            speed.append((f"synth seed {scene_seed} {w}x{h}, Shi-Tomasi seeds, {method}",
+                          len(st), F - 1, dt,
                           len(st) * (F - 1) / dt))
 
 

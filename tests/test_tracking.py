@@ -232,3 +232,35 @@ def test_error_paths(series):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", TrackingWarning)
             track_reverse([other, frames[-1]], seeds, progress=False)
+
+
+@pytest.mark.slow
+def test_lk_steps_are_checked_against_a_subset_match(tmp_path):
+    """On a synthetic series whose early frames have low contrast, plain LK (the reference
+    paper's) marks steps valid that are more than 0.5 px off; with the IC-GN agreement
+    check (default lk_check_px) no valid step is."""
+    import csv as _csv
+
+    from semlab.experiment import load
+    from semlab.synth import make_experiment
+
+    exp = load(make_experiment(tmp_path / "e", seed=1, tilts_deg=(), n_frames=6,
+                               progress=False))
+    frames = exp.frames()
+    with open(tmp_path / "e" / "truth" / "points.csv") as fh:
+        pts = list(_csv.DictReader(fh))
+    F = len(frames)
+    true = np.array([[[float(p[f"f{k}_x_px"]), float(p[f"f{k}_y_px"])] for p in pts]
+                     for k in range(F)])
+    h, w = frames[0].shape
+    inside = np.all((true[..., 0] > 15) & (true[..., 0] < w - 16) & (true[..., 1] > 15)
+                    & (true[..., 1] < h - 16), axis=0)
+    true = true[:, inside]
+    bad = {}
+    for check in (None, 0.2):
+        tr = track_reverse(frames, true[-1], method="lk", progress=False, lk_check_px=check)
+        err = np.linalg.norm(tr.xy - true, axis=2)
+        bad[check] = int((tr.valid & (err > 0.5)).sum())
+        if check is not None:
+            assert tr.valid[:-1].any()
+    assert bad[None] > 0 and bad[0.2] == 0
