@@ -589,9 +589,13 @@ def _flow_field(ref_img, img, M, half_window, eps):
     import cv2
 
     hgt, wid = ref_img.shape
-    warped = cv2.warpAffine(np.asarray(img, np.float32), M.astype(np.float64), (wid, hgt),
-                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                            borderMode=cv2.BORDER_REFLECT)
+    if np.shape(M) == (2, 3):
+        warped = cv2.warpAffine(np.asarray(img, np.float32), M.astype(np.float64), (wid, hgt),
+                                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                borderMode=cv2.BORDER_REFLECT)
+    else:   # a dense prior map (H, W, 2): where each reference pixel lies in img
+        warped = cv2.remap(np.asarray(img, np.float32), M[..., 0], M[..., 1],
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     sig = 2.0 * half_window
     a8 = _norm8(ref_img, sig, eps)
     b8 = _norm8(warped, sig, eps)
@@ -648,7 +652,16 @@ def _flow_guess(M, fwd, bwd, grid, half_window):
 
     f = _sample(fwd, grid)
     fb_err = np.hypot(*(f + _sample(bwd, grid + f)).T)
-    guess = _apply_affine(M, grid + f)
+    if np.shape(M) == (2, 3):
+        guess = _apply_affine(M, grid + f)
+        A = np.broadcast_to(M[:, :2], (len(grid), 2, 2))
+    else:   # dense prior map Φ: guess Φ(x + f), Jacobian ∇Φ there
+        guess = _sample(M, grid + f)
+        q = grid + f
+        mx = cv2.Sobel(M, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+        my = cv2.Sobel(M, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
+        ax, ay = _sample(mx, q), _sample(my, q)          # (n, 2): ∂Φ/∂x, ∂Φ/∂y
+        A = np.stack([np.stack([ax[:, 0], ay[:, 0]], 1), np.stack([ax[:, 1], ay[:, 1]], 1)], 1)
     # flow gradient over a subset (Gaussian-smoothed central differences)
     sm = cv2.GaussianBlur(fwd, (0, 0), max(1.0, half_window / 2))
     gx = cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
@@ -656,11 +669,49 @@ def _flow_guess(M, fwd, bwd, grid, half_window):
     dfx = _sample(gx, grid)        # (n, 2): (du/dx, dv/dx)
     dfy = _sample(gy, grid)        # (n, 2): (du/dy, dv/dy)
     J = np.stack([np.stack([dfx[:, 0], dfy[:, 0]], 1), np.stack([dfx[:, 1], dfy[:, 1]], 1)], 1)
-    G = np.einsum("ij,njk->nik", M[:, :2], np.eye(2) + J) - np.eye(2)
-    G = np.clip(G, -0.45, 0.45)
+    G = np.einsum("nij,njk->nik", A, np.eye(2) + J) - np.eye(2)
+    G = np.clip(G, -0.8, 0.8)
     z = np.zeros(len(grid))
     init = np.column_stack([z, G[:, 0, 0], G[:, 0, 1], z, G[:, 1, 0], G[:, 1, 1]])
     return guess, init, fb_err
+
+
+def _dense_prior(src, dst, shape, half_window, k=9, thresh_px=3.0, step_px=8):
+    """Dense map (H, W, 2) float32: where each reference pixel lies in the other view,
+    interpolated from the sparse feature matches.
+
+    For views that no global affine map describes (a tall object: parallax of hundreds of
+    pixels varying over the image, so that only a small part of the matches fits one
+    affine), the matches are filtered by local consistency (a match whose displacement
+    differs by more than ``thresh_px`` from the median of its ``k − 1`` nearest neighbours
+    is dropped, twice), linearly interpolated between them (nearest value outside their
+    convex hull) on a grid of ``step_px`` and smoothed over a subset.
+    """
+    import cv2
+    from scipy.interpolate import griddata
+
+    s, d = np.asarray(src, float), np.asarray(dst, float) - np.asarray(src, float)
+    for _ in range(2):
+        if len(s) <= k:
+            break
+        _, nb = cKDTree(s).query(s, k=k)
+        med = np.median(d[nb[:, 1:]], axis=1)
+        good = np.hypot(*(d - med).T) < thresh_px
+        s, d = s[good], d[good]
+    if len(s) < 6:
+        raise GeometryError("too few consistent feature matches for a dense parallax prior")
+    hgt, wid = shape
+    gx = np.arange(0, wid + step_px, step_px, dtype=float)
+    gy = np.arange(0, hgt + step_px, step_px, dtype=float)
+    GX, GY = np.meshgrid(gx, gy)
+    q = np.column_stack([GX.ravel(), GY.ravel()])
+    lin = np.column_stack([griddata(s, d[:, c], q, method="linear") for c in (0, 1)])
+    near = np.column_stack([griddata(s, d[:, c], q, method="nearest") for c in (0, 1)])
+    D = np.where(np.isfinite(lin), lin, near).reshape(len(gy), len(gx), 2).astype(np.float32)
+    D = cv2.resize(D, (int(gx[-1]) + 1, int(gy[-1]) + 1), interpolation=cv2.INTER_LINEAR)
+    D = cv2.GaussianBlur(D[:hgt, :wid], (0, 0), max(1.0, float(half_window)))
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float32)
+    return np.ascontiguousarray(np.stack([xx + D[..., 0], yy + D[..., 1]], -1))
 
 
 def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
@@ -749,7 +800,7 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
                smooth_sigma_px=None, consistency_px=0.3, band_aware=True,
                band_half_width_px=3, kappa=1.0, max_roughness_px=0.08, dense_init=True,
                wide_search_px=10, min_texture_snr=1.0, multiview_px=0.3, max_iter=60,
-               tol_px=1e-3, max_features=5000, backward_px=0.1):
+               tol_px=1e-3, max_features=5000, backward_px=0.1, dense_prior_below=0.5):
     """Automatic dense correspondences between SEM views.
 
     1. Sparse features (SIFT, Lowe 2004 IJCV 60(2); or Shi–Tomasi corners 1994 described by
@@ -852,6 +903,11 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     max_features : int
         At most this many sparse features per view (the strongest; they only fix the
         global affine and, without ``dense_init``, the parallax prior).
+    dense_prior_below : float
+        When fewer than this fraction of the feature matches fit the global affine map
+        (tall objects: hundreds of pixels of parallax varying over the view), the optical
+        flow starts from a dense map interpolated from the consistent matches
+        (:func:`_dense_prior`) instead of the affine. 0 disables it.
 
     Returns
     -------
@@ -939,8 +995,16 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         s_res = s_dst - _apply_affine(M, s_src)
         L = M[:, :2] - np.eye(2)
         grad = np.array([0, L[0, 0], L[0, 1], 0, L[1, 0], L[1, 1]])
+        # no global affine describes the pair when most matches disagree with it (a tall
+        # object): then the flow starts from a dense map interpolated from the matches
+        prior = M
+        if dense_init and inl.mean() < dense_prior_below:
+            try:
+                prior = _dense_prior(src, dst, ims[ref].shape, half_window)
+            except GeometryError:
+                prior = M
         if dense_init:
-            warped, fwd, bwd = _flow_field(ims[ref], ims[j], M, half_window, eps)
+            warped, fwd, bwd = _flow_field(ims[ref], ims[j], prior, half_window, eps)
         if work is None:
             # texture test on the reference view, with the noise seen between the views
             noise = _aligned_noise(ims[ref], warped, fwd, half_window) if dense_init \
@@ -958,7 +1022,7 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         if nw == 0:       # every point flagged "low texture"
             break
         if dense_init:
-            guess0, init_w, fb = _flow_guess(M, fwd, bwd, gw, half_window)
+            guess0, init_w, fb = _flow_guess(prior, fwd, bwd, gw, half_window)
             # parallax direction from the dense field where the flow is reliable
             d = guess0 - _apply_affine(M, gw)
             rel = fb < 1.0
