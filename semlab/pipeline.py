@@ -318,7 +318,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         calib["perspective"] = {"K": lines_cal.K, "R_1": R_p, "t_1_um": t_p,
                                 "tilt_difference_deg": tilt_p,
                                 "scale": "median depth = pixel_size_um * focal_px"}
-        notes.append("camera = perspective: z_err_um uses the affine parallax error model")
+        notes.append("camera = perspective: z_err_um from the matching error through the "
+                     "triangulation (pose uncertainty not included)")
         xyz_3d = xyz_p
     else:
         xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
@@ -328,8 +329,12 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     xyz = np.column_stack([xyz_3d[:, :2], z])
     # raw clicks carry no matching estimate: assume the typical hand-click error
     sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
-    z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
-    if n_boot:
+    if exp.stereo.camera == "perspective":
+        z_err = reconstruct.perspective_height_sigma(lines_cal.K, R_p, t_p, pts[:, 0],
+                                                     pts[:, 1], sigma_px)
+    else:
+        z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
+    if n_boot and exp.stereo.camera != "perspective":
         sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot, seed=seed,
                                              tilt_axis_deg=axis_used, progress=progress)
         z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)

@@ -44,6 +44,7 @@ __all__ = [
     "tilt_from_rotation",
     "triangulate_perspective",
     "heights_perspective",
+    "perspective_height_sigma",
 ]
 
 TWO_VIEW_MESSAGE = (
@@ -768,3 +769,45 @@ def heights_perspective(x0, x1, K, pixel_size_um, F=None):
     xyz = X * k
     xyz[:, 2] = -xyz[:, 2]
     return xyz, R, t * k, tilt_from_rotation(R)
+
+
+def perspective_height_sigma(K, R, t_um, x0, x1, sigma_px):
+    """1σ height error of perspective-triangulated points from their matching error.
+
+    The match in view 1 is moved by ``sigma_px`` along x (the parallax direction) and the
+    point re-triangulated with the pose kept (:func:`heights_perspective` gives ``R`` and
+    ``t_um``); the change of depth is the height error. The uncertainty of the pose itself
+    is not included.
+
+    Parameters
+    ----------
+    K : (3, 3) array
+    R : (3, 3) array, t_um : (3,) array
+        Pose of camera 1 relative to camera 0, ``t_um`` in µm.
+    x0, x1 : (N, 2) arrays of (x, y) pixels
+    sigma_px : float or (N,) array
+        1σ matching error of each point in view 1, pixels.
+
+    Returns
+    -------
+    (N,) array of z errors in µm.
+    """
+    k = np.asarray(K, float)
+    t = np.asarray(t_um, float)
+    scale = float(np.linalg.norm(t))
+    if not scale > 0:
+        raise GeometryError("t_um must be a non-zero translation")
+    kinv = np.linalg.inv(k)
+
+    def norm(x):
+        h = np.column_stack([x, np.ones(len(x))]) @ kinv.T
+        return h[:, :2] / h[:, 2:]
+
+    a = np.asarray(x0, float)
+    b = np.asarray(x1, float)
+    p0 = np.hstack([np.eye(3), np.zeros((3, 1))])
+    p1 = np.hstack([np.asarray(R, float), (t / scale)[:, None]])
+    X, _ = _triangulate_linear(p0, p1, norm(a), norm(b))
+    sig = np.broadcast_to(np.asarray(sigma_px, float), (len(a),))
+    Xp, _ = _triangulate_linear(p0, p1, norm(a), norm(b + np.column_stack([sig, 0 * sig])))
+    return np.abs(Xp[:, 2] - X[:, 2]) * scale

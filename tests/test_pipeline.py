@@ -114,3 +114,18 @@ def test_perspective_camera_needs_lines(tmp_path):
     with pytest.raises(GeometryError, match="perspective.*lines"):
         pipeline.run_stereo(experiment.load(exp.toml_path), method="raw", n_boot=0,
                             progress=False)
+
+
+def test_perspective_height_errors_follow_the_click_noise(tmp_path):
+    """With 0.1 px click noise the reported z_err (matching error through the triangulation)
+    has the size of the actual height errors."""
+    exp, h = _perspective_experiment(tmp_path, noise_px=0.1)
+    corr = exp.correspondences()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
+    err = validation.height_errors(res.z_um, h, res.xyz_um[:, :2])["rmse_um"]
+    # raw clicks are assigned the hand-click sigma (0.5 px): scale to the true 0.1 px
+    pred = np.sqrt(np.mean(res.z_err_um ** 2)) * 0.1 / pipeline.RAW_CLICK_SIGMA_PX
+    assert len(corr.pts) == len(res.z_um)
+    assert 0.5 < err / (np.sqrt(2) * pred) < 2.0
