@@ -161,19 +161,25 @@ def _apply_affine(M, p):
 
 
 # --------------------------------------------------------------------------- band-aware refinement
-def _parallax_gradients(xy, par, k=12, return_residual=False):
+def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
     """Gradient of a scattered parallax field by local least-squares planes (k neighbours).
 
     Returns (n, 2) gradients, and with ``return_residual`` also the RMS residual (n,) of
-    each local plane."""
+    each local plane. ``quadratic``: fit local quadrics instead (curved parallax fields of
+    tall objects), residuals of those."""
     n = len(xy)
     kk = min(k, n)
     _, nb = cKDTree(xy).query(xy, k=kk)
     nb = nb.reshape(n, kk)
     d = xy[nb] - xy[:, None, :]                                    # (n, k, 2)
-    X = np.concatenate([np.ones((n, kk, 1)), d], axis=2)          # (n, k, 3)
+    cols = [np.ones((n, kk, 1)), d]
+    if quadratic:
+        sc = max(float(np.median(np.abs(d))), 1e-9)               # keep the system scaled
+        q = d / sc
+        cols.append(np.stack([q[..., 0] ** 2, q[..., 0] * q[..., 1], q[..., 1] ** 2], -1))
+    X = np.concatenate(cols, axis=2)                               # (n, k, 3 or 6)
     y = par[nb]
-    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(3)
+    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(X.shape[2])
     Xty = np.einsum("nki,nk->ni", X, y)
     sol = np.linalg.solve(XtX, Xty[..., None])[..., 0]
     if return_residual:
@@ -875,7 +881,8 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         :func:`refine_correspondences`.
     max_roughness_px : float or None
         Points where the parallax field is not locally planar are marked invalid: the RMS
-        residual (pixels) of a least-squares plane through the parallax of the point and
+        residual (pixels) of a least-squares plane (a quadric for views matched with the
+        dense prior, whose parallax is curved) through the parallax of the point and
         its 11 nearest accepted neighbours (about ±1.5 grid spacings) must not exceed
         ``max(max_roughness_px, 2 × median sigma_px)`` (the second term keeps the test
         above the random matching error of noisy images). Near the sharp flanks of
@@ -969,6 +976,7 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     ref8 = _to_uint8(ims[ref])
     ref_coef = None if smooth_sigma_px is None else prefilter_image(ims[ref], smooth_sigma_px)
     resid = {}
+    curved = set()            # views matched with the dense prior (tall objects)
     ref_cache = {}
     fwd_state = {}
     for j in range(v):
@@ -1001,6 +1009,7 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         if dense_init and inl.mean() < dense_prior_below:
             try:
                 prior = _dense_prior(src, dst, ims[ref].shape, half_window)
+                curved.add(j)
             except GeometryError:
                 prior = M
         if dense_init:
@@ -1106,7 +1115,10 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         idx = np.flatnonzero(valid)
         thr = max(max_roughness_px, 2.0 * float(np.median(sigma[idx])))
         for j, (pa, _) in resid.items():
-            _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True)
+            # with the dense prior (a tall object) the parallax is curved on the scale of the
+            # neighbourhood: test against local quadrics, which still reject steps
+            _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
+                                           quadratic=j in curved)
             bad = rough > thr
             for i, rr in zip(idx[bad], rough[bad]):
                 if valid[i]:
