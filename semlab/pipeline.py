@@ -305,6 +305,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         axis_used = axis
         notes.append(f"tilt axis at {axis:.2f}° in the image (not along y): coordinates rotated")
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
+    # raw clicks carry no matching estimate: assume the typical hand-click error
+    sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
     if exp.stereo.camera == "perspective":
         if lines_cal is None:
             raise GeometryError(
@@ -321,23 +323,20 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         notes.append("camera = perspective: z_err_um from the matching error through the "
                      "triangulation (pose uncertainty not included)")
         xyz_3d = xyz_p
-    else:
-        xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
-                                                tilt_axis_deg=axis_used).xyz_um
-    plane = surface.fit_reference_plane(xyz_3d)
-    z = surface.heights_above_plane(xyz_3d, plane)
-    xyz = np.column_stack([xyz_3d[:, :2], z])
-    # raw clicks carry no matching estimate: assume the typical hand-click error
-    sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
-    if exp.stereo.camera == "perspective":
         z_err = reconstruct.perspective_height_sigma(lines_cal.K, R_p, t_p, pts[:, 0],
                                                      pts[:, 1], sigma_px)
     else:
+        xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
+                                                tilt_axis_deg=axis_used).xyz_um
         z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
-    if n_boot and exp.stereo.camera != "perspective":
-        sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot, seed=seed,
-                                             tilt_axis_deg=axis_used, progress=progress)
-        z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
+        if n_boot:
+            sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
+                                                 seed=seed, tilt_axis_deg=axis_used,
+                                                 progress=progress)
+            z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
+    plane = surface.fit_reference_plane(xyz_3d)
+    z = surface.heights_above_plane(xyz_3d, plane)
+    xyz = np.column_stack([xyz_3d[:, :2], z])
     calib.update(tilt_deg=tilt, tilt_source=tilt_source, tilt_sigma_deg=tilt_sigma,
                  tilt_axis_deg=axis_used, reference_plane=np.asarray(plane))
     n = len(pts)

@@ -612,6 +612,12 @@ def tilt_from_rotation(R_rel):
 
 # ----------------------------------------------------------------------------- perspective
 
+def _normalized(K_inv, x):
+    """(N, 2) pixels -> (N, 2) normalized image coordinates ``K⁻¹ [x, 1]``."""
+    h = np.column_stack([x, np.ones(len(x))]) @ K_inv.T
+    return h[:, :2] / h[:, 2:]
+
+
 def _triangulate_linear(p0, p1, x0, x1):
     """DLT triangulation (H&Z §12.2) of normalized points; returns (N, 3), (N,) w."""
     rows = np.stack([
@@ -690,9 +696,7 @@ def triangulate_perspective(K, F_or_E, x0, x1, essential=False):
         vt = -vt
     w = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     kinv = np.linalg.inv(k)
-    na = np.column_stack([a, np.ones(len(a))]) @ kinv.T
-    nb = np.column_stack([b, np.ones(len(b))]) @ kinv.T
-    na, nb = na[:, :2] / na[:, 2:], nb[:, :2] / nb[:, 2:]
+    na, nb = _normalized(kinv, a), _normalized(kinv, b)
     p0 = np.hstack([np.eye(3), np.zeros((3, 1))])
     best = None
     for r in (u @ w @ vt, u @ w.T @ vt):
@@ -798,16 +802,13 @@ def perspective_height_sigma(K, R, t_um, x0, x1, sigma_px):
     if not scale > 0:
         raise GeometryError("t_um must be a non-zero translation")
     kinv = np.linalg.inv(k)
-
-    def norm(x):
-        h = np.column_stack([x, np.ones(len(x))]) @ kinv.T
-        return h[:, :2] / h[:, 2:]
-
     a = np.asarray(x0, float)
     b = np.asarray(x1, float)
     p0 = np.hstack([np.eye(3), np.zeros((3, 1))])
     p1 = np.hstack([np.asarray(R, float), (t / scale)[:, None]])
-    X, _ = _triangulate_linear(p0, p1, norm(a), norm(b))
+    na = _normalized(kinv, a)
+    X, _ = _triangulate_linear(p0, p1, na, _normalized(kinv, b))
     sig = np.broadcast_to(np.asarray(sigma_px, float), (len(a),))
-    Xp, _ = _triangulate_linear(p0, p1, norm(a), norm(b + np.column_stack([sig, 0 * sig])))
+    Xp, _ = _triangulate_linear(p0, p1, na,
+                                _normalized(kinv, b + np.column_stack([sig, 0 * sig])))
     return np.abs(Xp[:, 2] - X[:, 2]) * scale

@@ -605,7 +605,8 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     if method == "subset" or lk_check:
         from .subset import icgn_refine, prefilter_image   # lazy: only IC-GN users need it
         hw = int(subset_half_window if subset_half_window is not None else half)
-        ref_coef = prefilter_image(norm[ref].astype(np.float64))
+        ref64 = norm[ref].astype(np.float64)
+        ref_coef = prefilter_image(ref64)
         grad_last = np.zeros((n, 6))      # affine warp of each track's last valid step
 
     order = range(F - 2, -1, -1)
@@ -642,7 +643,6 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         else:
             cur = norm[k].astype(np.float64)
             cur_coef = prefilter_image(cur)
-            ref64 = norm[ref].astype(np.float64)
             res = icgn_refine(ref64, cur, seeds, guess, half_window=hw, warp="affine",
                               init_warp=grad_last, ref_prefiltered=ref_coef,
                               cur_prefiltered=cur_coef)
@@ -690,8 +690,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         if lk_check:
             chk = np.flatnonzero(good)
             if len(chk):
-                cur = norm[k].astype(np.float64)
-                rc = icgn_refine(norm[ref].astype(np.float64), cur, seeds[chk], pos[chk],
+                rc = icgn_refine(ref64, norm[k].astype(np.float64), seeds[chk], pos[chk],
                                  half_window=hw, warp="affine", init_warp=grad_last[chk],
                                  ref_prefiltered=ref_coef)
                 d = np.linalg.norm(np.asarray(rc.pts, float) - pos[chk], axis=1)
