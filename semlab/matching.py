@@ -639,6 +639,16 @@ def _aligned_noise(ref_img, warped, fwd, half_window):
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
+def _field_jacobian(field, pts):
+    """Jacobian (n, 2, 2) ``[[∂u/∂x, ∂u/∂y], [∂v/∂x, ∂v/∂y]]`` of an (H, W, 2) float32
+    field ``(u, v)`` at (x, y) points (central differences, bilinear sampling)."""
+    import cv2
+
+    dx = _sample(cv2.Sobel(field, cv2.CV_32F, 1, 0, ksize=1, scale=0.5), pts)   # (n, 2)
+    dy = _sample(cv2.Sobel(field, cv2.CV_32F, 0, 1, ksize=1, scale=0.5), pts)
+    return np.stack([dx, dy], axis=2)
+
+
 def _flow_guess(M, fwd, bwd, grid, half_window):
     """Initial guesses of grid points from the flow of :func:`_flow_field`.
 
@@ -663,18 +673,9 @@ def _flow_guess(M, fwd, bwd, grid, half_window):
         A = np.broadcast_to(M[:, :2], (len(grid), 2, 2))
     else:   # dense prior map Φ: guess Φ(x + f), Jacobian ∇Φ there
         guess = _sample(M, grid + f)
-        q = grid + f
-        mx = cv2.Sobel(M, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-        my = cv2.Sobel(M, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
-        ax, ay = _sample(mx, q), _sample(my, q)          # (n, 2): ∂Φ/∂x, ∂Φ/∂y
-        A = np.stack([np.stack([ax[:, 0], ay[:, 0]], 1), np.stack([ax[:, 1], ay[:, 1]], 1)], 1)
+        A = _field_jacobian(M, grid + f)
     # flow gradient over a subset (Gaussian-smoothed central differences)
-    sm = cv2.GaussianBlur(fwd, (0, 0), max(1.0, half_window / 2))
-    gx = cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-    gy = cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
-    dfx = _sample(gx, grid)        # (n, 2): (du/dx, dv/dx)
-    dfy = _sample(gy, grid)        # (n, 2): (du/dy, dv/dy)
-    J = np.stack([np.stack([dfx[:, 0], dfy[:, 0]], 1), np.stack([dfx[:, 1], dfy[:, 1]], 1)], 1)
+    J = _field_jacobian(cv2.GaussianBlur(fwd, (0, 0), max(1.0, half_window / 2)), grid)
     G = np.einsum("nij,njk->nik", A, np.eye(2) + J) - np.eye(2)
     G = np.clip(G, -0.8, 0.8)
     z = np.zeros(len(grid))

@@ -728,13 +728,13 @@ class _ScreenImage:
         self.ax = ax
         self.img = np.asarray(img)
         h, w = self.img.shape[:2]
-        ax.set_xlim(-0.5, w - 0.5)
-        ax.set_ylim(h - 0.5, -0.5)
         self.artist = ax.imshow(self.img[:1, :1], extent=(-0.5, 0.5, 0.5, -0.5), **imshow_kw)
         ax.set_xlim(-0.5, w - 0.5)
         ax.set_ylim(h - 0.5, -0.5)
         self.key = None
         self.update()
+        # matplotlib keeps only weak references to these bound methods: the owner keeps
+        # this object alive (see _show_image)
         ax.callbacks.connect("xlim_changed", self.update)
         ax.callbacks.connect("ylim_changed", self.update)
 
