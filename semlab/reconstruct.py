@@ -31,6 +31,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .errors import GeometryError
+from .plane import fit_reference_plane
 
 __all__ = [
     "AffineFactorization",
@@ -62,10 +63,8 @@ def _as_pts(pts, min_views=2, min_points=1):
         raise GeometryError(
             f"pts must be an (N, V, 2) array (point, view, xy) in pixels, got shape {p.shape}")
     n, v = p.shape[:2]
-    hint = ""
-    if n < v:
-        hint = (" — pts must be (N, V, 2) (point, view, xy); if you have (V, N, 2) use "
-                "pts.transpose(1, 0, 2)")
+    hint = (" — pts must be (N, V, 2) (point, view, xy); if you have (V, N, 2) use "
+            "pts.transpose(1, 0, 2)") if n < v else ""
     if v < min_views:
         raise GeometryError(f"need at least {min_views} views, got {v} (pts shape {p.shape}){hint}")
     if n < min_points:
@@ -109,13 +108,15 @@ def _check_not_collinear(xy, what="points"):
             f"the {what} are collinear in the image: spread matches over the field of view")
 
 
+def _rot2(a):
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+
 def _rotate_to_vertical_axis(pts, tilt_axis_deg, center):
     """Rotate image points about ``center`` so that the tilt axis direction maps to +y."""
     if tilt_axis_deg == 90.0:
         return pts
-    a = np.deg2rad(90.0 - float(tilt_axis_deg))
-    r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    return (pts - center) @ r.T + center
+    return (pts - center) @ _rot2(np.deg2rad(90.0 - float(tilt_axis_deg))).T + center
 
 
 # ----------------------------------------------------------------------------- factorization
@@ -206,8 +207,7 @@ def parallax_height(u0, u1, tilt0_deg, tilt1_deg, pixel_size_um, c0=0.0, c1=0.0)
     pixel_size_um : float
         Pixel size, µm/px.
     c0, c1 : float or array_like
-        x pixel position of the tilt axis in each view (unknown offsets shift z by a
-        constant, removed with the reference plane).
+        x pixel position of the tilt axis in each view (unknown: z up to a constant).
 
     Returns
     -------
@@ -216,12 +216,10 @@ def parallax_height(u0, u1, tilt0_deg, tilt1_deg, pixel_size_um, c0=0.0, c1=0.0)
     """
     s = _check_pixel_size(pixel_size_um)
     t0, t1 = np.deg2rad(float(tilt0_deg)), np.deg2rad(float(tilt1_deg))
-    d = np.sin(t1 - t0)
-    if abs(d) < 1e-9:
+    if abs(np.sin(t1 - t0)) < 1e-9:
         raise GeometryError(f"the two tilts are equal ({tilt0_deg} deg): no parallax")
-    a0 = np.asarray(u0, float) - c0
-    a1 = np.asarray(u1, float) - c1
-    return s * (a1 * np.cos(t0) - a0 * np.cos(t1)) / d
+    a0, a1 = np.asarray(u0, float) - c0, np.asarray(u1, float) - c1
+    return s * (a1 * np.cos(t0) - a0 * np.cos(t1)) / np.sin(t1 - t0)
 
 
 @dataclass
@@ -259,12 +257,11 @@ def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_
     and ``y = s · mean_i(v_i - d_i)``.
 
     Unknown offsets: the tilt-axis positions ``(c_i, d_i)`` move between views when the
-    stage shifts. With ``center_px=None`` they are absorbed as one unknown constant per view;
-    the joint least squares over points, offsets and ``(x, z)`` is then solved by centring
-    each view's coordinates over the points (gauge: mean x = mean z = 0 before adding back
-    the mean-view position). A per-view constant can only move *all* points by the same
-    ``(Δx, Δz)``, so heights come out up to one constant: a (flat) plane, which
-    :func:`semlab.surface.fit_reference_plane` / ``heights_above_plane`` removes.
+    stage shifts. With ``center_px=None`` they are one unknown constant per view, solved by
+    centring each view's coordinates over the points (gauge: mean x = mean z = 0, then the
+    mean-view position added back). A per-view constant moves *all* points by one
+    ``(Δx, Δz)``, so heights are known up to a constant, removed with the reference surface
+    (:func:`semlab.surface.reference_surface`).
 
     Parameters
     ----------
@@ -365,10 +362,6 @@ class TiltEstimate:
     singular_values: np.ndarray
 
 
-def _rot2(a):
-    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-
-
 def _noise_corrected_scatter(uc, noise_weights):
     """Scatter ``U Uᵀ`` (V, V) of centred x-coordinates minus the matching-noise part.
 
@@ -441,7 +434,7 @@ def _metric_tilts(uc, noise_weights=None):
     return phi, b, sv
 
 
-def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0, plane_fit=None):
+def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0):
     """Fix sign (θ_last > θ_0) and common rotation (level plane or a known view's tilt)."""
     d = np.angle(np.exp(1j * (phi - phi[0])))  # unwrap relative to view 0
     b = _rot2(-phi[0]) @ b
@@ -454,7 +447,7 @@ def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0, plane_fit=None):
     alpha = 0.0
     for _ in range(10):  # rotating changes the robust weights only slightly: 2-3 rounds
         bb = _rot2(alpha) @ b
-        plane = plane_fit(np.column_stack([bb[0], y, bb[1]]))
+        plane = fit_reference_plane(np.column_stack([bb[0], y, bb[1]]))
         step = -np.arctan(plane[0])
         alpha += step
         if abs(step) < 1e-11:
@@ -479,7 +472,7 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
     Two ambiguities remain and are fixed by convention:
 
     - **absolute tilt** (common rotation about y): the robust reference plane
-      (:func:`semlab.surface.fit_reference_plane`) of the recovered surface is made
+      (:func:`semlab.plane.fit_reference_plane`) of the recovered surface is made
       level in x (zero dz/dx); or, with ``reference_view``, that view's tilt is set to
       ``reference_tilt_deg``;
     - **sign** (Necker reversal ``θ → -θ, z → -z``): not observable from the images; fixed
@@ -505,16 +498,13 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
     progress : bool
         Show a tqdm bar over the bootstrap.
     noise_free_view : int, optional
-        The view whose positions carry no matching error: the reference view of subset
-        matching, where the points are defined (:func:`semlab.matching.auto_match`,
-        :func:`semlab.matching.refine_correspondences`). The matching noise, then confined to
-        the other views, is removed from the scatter before the rank-2 fit. Ignoring it
-        with the first of −5/0/+5° views as reference biased the tilt differences by ~0.8°
-        at 0.03 px of noise (0.14° with the correction). With the middle view as reference
-        the bias cancels by symmetry and the correction only adds variance (0.06° without,
-        0.10° with): match against the middle view and leave this ``None`` (what
-        :func:`semlab.pipeline.choose_tilts` does). ``None``: no correction (right for
-        equal noise in every view, e.g. hand clicks in all views).
+        The view without matching error (the reference view of subset matching): the
+        noise, confined to the other views, is removed from the scatter before the rank-2
+        fit. With the first of −5/0/+5° views as reference, ignoring it biased the tilt
+        differences by ~0.8° at 0.03 px (0.14° corrected); with the middle view as
+        reference the bias cancels and the correction only adds variance (0.06° without,
+        0.10° with), so match against the middle view and leave this ``None`` (as
+        :func:`semlab.pipeline.choose_tilts` does; right for equal noise in all views).
 
     Returns
     -------
@@ -526,8 +516,6 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
         Two views (bas-relief ambiguity, message :data:`TWO_VIEW_MESSAGE`), too few points,
         NaNs, coplanar points or inconsistent metric constraints.
     """
-    from .surface import fit_reference_plane  # surface imports reconstruct lazily too
-
     p = np.asarray(pts, dtype=float)
     if p.ndim == 3 and p.shape[2] == 2 and p.shape[1] == 2:
         raise GeometryError(TWO_VIEW_MESSAGE)
@@ -541,8 +529,7 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
     if noise_free_view is not None:
         if not (-v <= int(noise_free_view) < v):
             raise GeometryError(f"noise_free_view={noise_free_view} but pts has {v} views")
-        weights = np.ones(v)
-        weights[int(noise_free_view) % v] = 0.0
+        weights = np.where(np.arange(v) == int(noise_free_view) % v, 0.0, 1.0)
     _check_not_collinear(p[:, 0, :], "matched points")
     p = np.stack([_rotate_to_vertical_axis(p[:, i], tilt_axis_deg, np.zeros(2))
                   for i in range(v)], 1)
@@ -553,7 +540,7 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
     def solve(idx):
         uc = u[:, idx] - u[:, idx].mean(axis=1, keepdims=True)
         phi, b, sv = _metric_tilts(uc, weights)
-        th, b = _fix_gauge(phi, b, yc[idx], ref, ref_t, fit_reference_plane)
+        th, b = _fix_gauge(phi, b, yc[idx], ref, ref_t)
         return th, b, sv, uc
 
     th, b, sv, uc = solve(np.arange(n))
@@ -571,8 +558,7 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
             except GeometryError:
                 continue
         if len(boots) >= 2:
-            bt = np.array(boots)
-            sig = np.rad2deg(np.std(np.angle(np.exp(1j * (bt - th))), axis=0, ddof=1))
+            sig = np.rad2deg(np.std(np.angle(np.exp(1j * (np.array(boots) - th))), 0, ddof=1))
         if ref is not None:
             sig[ref] = 0.0
     scale = 1.0 if pixel_size_um is None else _check_pixel_size(pixel_size_um)

@@ -1,14 +1,16 @@
-"""Surface analysis of reconstructed points: reference plane, heights, errors, profiles, CSV.
+"""Surface analysis of reconstructed points: reference surface, heights, errors, profiles, CSV.
 
 Points are ``xyz_um`` : ``(N, 3)`` arrays of ``(x, y, z)`` in µm in the material frame of
 :mod:`semlab.camera` (x, y in the surface plane, z toward the detector). Heights are measured
-vertically from a robust reference plane ``z = a x + b y + c``: positive = extrusion,
-negative = intrusion.
+vertically from a reference plane ``z = a x + b y + c`` (:func:`reference_surface`): by
+default the dominant flat surface, or a named region, or three picked points; positive =
+extrusion, negative = intrusion.
 """
 
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +18,19 @@ from scipy import stats
 from tqdm.auto import tqdm
 
 from .errors import GeometryError, SemlabError
+from .plane import (_as_xyz, fit_reference_plane, heights_above_plane, plane_through_points,
+                    ransac_plane)
+from .reconstruct import heights_from_tilts
 
 __all__ = [
     "POINTS3D_COLUMNS",
+    "ReferenceSurface",
+    "reference_surface",
+    "region_mask",
     "fit_reference_plane",
     "heights_above_plane",
+    "plane_through_points",
+    "ransac_plane",
     "height_sigma",
     "bootstrap_heights",
     "profile_along_line",
@@ -30,111 +40,220 @@ __all__ = [
 ]
 
 POINTS3D_COLUMNS = ("point_id", "x_px", "y_px", "x_um", "y_um", "z_um", "z_err_um")
-
-_TUKEY_C = 4.685  # 95 % efficiency at the normal model
-
-
-def _as_xyz(xyz_um, min_points=3):
-    p = np.asarray(xyz_um, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise GeometryError(f"xyz_um must be an (N, 3) array of (x, y, z) µm, got shape {p.shape}")
-    if p.shape[0] < min_points:
-        raise GeometryError(f"need at least {min_points} points, got {p.shape[0]}")
-    if not np.all(np.isfinite(p)):
-        raise GeometryError("xyz_um holds NaN/inf: drop the points that failed to reconstruct")
-    return p
+#: Matched points averaged around each picked point of a three-point reference plane.
+THREE_POINT_NEIGHBOURS = 5
 
 
-def _wls_plane(a, z, w):
-    sw = np.sqrt(w)
-    coef, *_ = np.linalg.lstsq(a * sw[:, None], z * sw, rcond=None)
-    return coef
+# ----------------------------------------------------------------------------- reference surface
+
+def _region_kind(region):
+    if isinstance(region, (str, Path)):
+        return "mask"
+    r = np.asarray(region)
+    if r.dtype == bool and r.ndim == 2:
+        return "mask"
+    if r.ndim == 1 and r.size == 4:
+        return "rectangle"
+    if r.ndim == 2 and r.shape[1] == 2 and r.shape[0] >= 3:
+        return "polygon"
+    raise GeometryError(
+        f"a reference region is a rectangle [x0, y0, x1, y1], a polygon [[x, y], ...] (3+ "
+        f"vertices) in view-0 pixels, or a mask image path; got {region!r}")
 
 
-def fit_reference_plane(xyz_um, robust=True, max_iter=100):
-    """Fit the reference plane ``z = a x + b y + c`` of a surface.
-
-    Robust fit (``robust=True``): an L1 fit (iteratively reweighted least squares, weights
-    ``1/|r|``) as a start insensitive to one-sided extrusions, then Tukey-biweight IRLS
-    with scale ``1.4826 · MAD`` of the residuals and ``c = 4.685`` (Huber & Ronchetti,
-    *Robust Statistics*, 2nd ed., §7.8; Holland & Welsch 1977). Points far above or below
-    the surface (extrusions, intrusions, bad matches) get zero weight, so up to roughly
-    40 % of them do not tilt the plane. ``robust=False``: ordinary least squares.
+def region_mask(region, xy_px):
+    """Which points lie in a reference region of view 0.
 
     Parameters
     ----------
-    xyz_um : (N, 3) array
-        Points ``(x, y, z)`` µm (any common unit works), N >= 3, not collinear in (x, y).
-    robust : bool
-        Robust (default) or least-squares fit.
-    max_iter : int
-        Iterations of each IRLS stage.
+    region : (4,) array_like, (K, 2) array_like, str/Path or (H, W) bool array
+        ``[x0, y0, x1, y1]`` rectangle (pixels, inclusive), polygon vertices ``(x, y)``
+        pixels (K >= 3), or a mask image (a path to an image, non-zero = in the region,
+        or a boolean array) indexed ``[row, col]`` like view 0.
+    xy_px : (N, 2) array
+        Point positions ``(x, y)`` in view-0 pixels.
 
     Returns
     -------
-    plane : (3,) array
-        ``(a, b, c)`` with ``z = a x + b y + c`` (a, b dimensionless slopes).
-
-    Raises
-    ------
-    GeometryError
-        Wrong shape, NaNs, fewer than 3 points, or collinear (x, y).
+    (N,) bool array
     """
-    p = _as_xyz(xyz_um)
-    xy0 = p[:, :2].mean(axis=0)  # centre for conditioning
-    a = np.column_stack([p[:, 0] - xy0[0], p[:, 1] - xy0[1], np.ones(len(p))])
-    sv = np.linalg.svd(a[:, :2], compute_uv=False)
-    if sv[1] <= 1e-9 * max(sv[0], 1e-300):
-        raise GeometryError("the points are collinear in (x, y): a plane needs points spread in 2D")
-    z = p[:, 2]
-    coef = _wls_plane(a, z, np.ones(len(z)))
-    if robust:
-        zscale = np.std(z - a @ coef)
-        if zscale > 0:
-            eps = 1e-6 * zscale
-            for _ in range(min(max_iter, 20)):  # L1 start: only needs to be near
-                r = z - a @ coef
-                new = _wls_plane(a, z, 1.0 / np.maximum(np.abs(r), eps))
-                done = np.abs(new - coef).max() <= 1e-6 * (np.abs(coef).max() + 1e-300)
-                coef = new
-                if done:
-                    break
-            floor = 1e-9 * zscale
-            for _ in range(max_iter):  # Tukey biweight
-                r = z - a @ coef
-                scale = max(1.4826 * np.median(np.abs(r - np.median(r))), floor)
-                t = r / (_TUKEY_C * scale)
-                w = np.where(np.abs(t) < 1, (1 - t ** 2) ** 2, 0.0)
-                if np.count_nonzero(w) < 3:
-                    break
-                new = _wls_plane(a, z, w)
-                done = np.abs(new - coef).max() <= 1e-12 * (np.abs(coef).max() + 1e-300)
-                coef = new
-                if done:
-                    break
-    # back from centred coordinates
-    return np.array([coef[0], coef[1], coef[2] - coef[0] * xy0[0] - coef[1] * xy0[1]])
+    xy = np.asarray(xy_px, float).reshape(-1, 2)
+    kind = _region_kind(region)
+    if kind == "rectangle":
+        x0, y0, x1, y1 = np.asarray(region, float)
+        if not (x1 > x0 and y1 > y0):
+            raise GeometryError(f"reference rectangle {list(region)} must have x1 > x0 and y1 > y0")
+        return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+    if kind == "polygon":
+        from matplotlib.path import Path as MplPath
+
+        return MplPath(np.asarray(region, float)).contains_points(xy)
+    if isinstance(region, (str, Path)):
+        from .io import read_image
+
+        m = read_image(region).data != 0
+    else:
+        m = np.asarray(region, bool)
+    col = np.clip(np.rint(xy[:, 0]).astype(int), 0, m.shape[1] - 1)
+    row = np.clip(np.rint(xy[:, 1]).astype(int), 0, m.shape[0] - 1)
+    inside = (xy[:, 0] > -0.5) & (xy[:, 0] < m.shape[1] - 0.5) & (xy[:, 1] > -0.5) \
+        & (xy[:, 1] < m.shape[0] - 0.5)
+    return inside & m[row, col]
 
 
-def heights_above_plane(xyz_um, plane):
-    """Vertical height of each point above a plane ``z = a x + b y + c``.
+@dataclass
+class ReferenceSurface:
+    """The plane heights are measured from, and how it was chosen.
+
+    Attributes
+    ----------
+    plane : (3,) array
+        ``(a, b, c)`` of ``z = a x + b y + c`` (µm, in the frame of ``xyz_um``).
+    method : str
+        ``"dominant_plane"`` (RANSAC over all points), ``"region"`` (robust fit of the points
+        in a named region) or ``"three_points"`` (plane through three picked points).
+    inliers : (N,) bool array
+        The points that define the plane.
+    residual_rms_um : float
+        RMS height of the inliers above the plane.
+    spread_um : float
+        5–95 % range of the inliers' heights.
+    sigma_um : float
+        Median 1σ height error of the inliers (NaN when no σ was given).
+    threshold_um : float
+        RANSAC inlier threshold (median over the points), NaN for the other methods.
+    detail : dict
+        JSON-ready description of the choice (region, picked points, k_sigma).
+    """
+
+    plane: np.ndarray
+    method: str
+    inliers: np.ndarray
+    residual_rms_um: float
+    spread_um: float
+    sigma_um: float
+    threshold_um: float = np.nan
+    detail: dict = field(default_factory=dict)
+    neighbours: list = field(default_factory=list, repr=False)
+
+    @property
+    def n_inliers(self):
+        return int(np.count_nonzero(self.inliers))
+
+    def heights(self, xyz_um):
+        """Heights ``(N,)`` µm of points above this plane."""
+        return heights_above_plane(xyz_um, self.plane)
+
+    def refit(self, xyz_um, index=None):
+        """The same choice applied to other coordinates of the same points (bootstrap).
+
+        ``index`` (M,) selects a resample of the points (None: all); the inlier set is kept.
+        """
+        p = np.asarray(xyz_um, float)
+        idx = np.arange(len(p)) if index is None else np.asarray(index)
+        if self.method == "three_points":
+            return plane_through_points(np.array([p[nb].mean(axis=0) for nb in self.neighbours]))
+        sel = idx[self.inliers[idx]]
+        return fit_reference_plane(p[sel], robust=self.method == "region")
+
+    def to_dict(self):
+        """JSON-ready record for ``calibration.json``."""
+        return {"method": self.method, "plane": [float(v) for v in self.plane],
+                "plane_form": "z_um = a x_um + b y_um + c", "n_inliers": self.n_inliers,
+                "n_points": int(len(self.inliers)), "residual_rms_um": self.residual_rms_um,
+                "spread_5_95_um": self.spread_um, "sigma_um": self.sigma_um,
+                "threshold_um": self.threshold_um, **self.detail}
+
+
+def _describe_region(region):
+    kind = _region_kind(region)
+    if kind == "mask":
+        return {"region": "mask", "mask": str(region) if isinstance(region, (str, Path))
+                else "array"}
+    return {"region": kind, f"{kind}_px": np.asarray(region, float).tolist()}
+
+
+def reference_surface(xyz_um, z_sigma_um=None, xy_px=None, region=None, three_points_px=None,
+                      k_sigma=3.0, n_iter=1000, seed=0):
+    """Choose the reference plane of a reconstructed surface.
+
+    - default: the dominant flat surface, :func:`semlab.plane.ransac_plane` with the
+      inlier threshold ``k_sigma`` times each point's own height σ (``z_sigma_um``; None:
+      estimated from the points), refitted by weighted least squares on the inliers. A
+      tall object, or rough regions covering much of the view, do not tilt it.
+    - ``region``: a robust fit (:func:`semlab.plane.fit_reference_plane`) of the points
+      whose view-0 position lies in the region (:func:`region_mask`).
+    - ``three_points_px``: the plane through three picked view-0 positions (Gwyddion's
+      three-point levelling); each picked point's ``(x, y, z)`` is the mean of its
+      :data:`THREE_POINT_NEIGHBOURS` nearest matched points.
 
     Parameters
     ----------
     xyz_um : (N, 3) array
         Points ``(x, y, z)`` µm.
-    plane : (3,) array_like
-        ``(a, b, c)`` from :func:`fit_reference_plane`.
+    z_sigma_um : None, float or (N,) array_like
+        1σ height error of each point, µm.
+    xy_px : (N, 2) array, optional
+        View-0 pixel positions ``(x, y)``; needed with ``region`` or ``three_points_px``.
+    region : see :func:`region_mask`, optional
+    three_points_px : (3, 2) array_like, optional
+        Picked ``(x, y)`` view-0 pixels.
+    k_sigma, n_iter, seed
+        RANSAC threshold (σ), samples and seed.
 
     Returns
     -------
-    z_um : (N,) array
-        ``z - (a x + b y + c)`` µm; positive = extrusion, negative = intrusion.
-    """
-    p = _as_xyz(xyz_um, min_points=1)
-    a, b, c = np.asarray(plane, float).ravel()[:3]
-    return p[:, 2] - (a * p[:, 0] + b * p[:, 1] + c)
+    ReferenceSurface
 
+    Raises
+    ------
+    GeometryError
+        Too few points in the region, collinear points, no dominant plane.
+    """
+    p = _as_xyz(xyz_um)
+    n = len(p)
+    sig = None if z_sigma_um is None else np.broadcast_to(np.asarray(z_sigma_um, float), (n,))
+    if (region is not None or three_points_px is not None) and xy_px is None:
+        raise GeometryError("a reference region or three points need xy_px, the view-0 pixel "
+                            "positions of the points")
+    if region is not None and three_points_px is not None:
+        raise GeometryError("give either a reference region or three reference points, not both")
+    threshold, neighbours = np.nan, []
+    if three_points_px is not None:
+        picks = np.asarray(three_points_px, float)
+        if picks.shape != (3, 2):
+            raise GeometryError(f"three reference points must be [[x, y]] x 3 pixels, got "
+                                f"{three_points_px!r}")
+        xy = np.asarray(xy_px, float)
+        k = min(THREE_POINT_NEIGHBOURS, n)
+        neighbours = [np.argsort(np.hypot(*(xy - q).T))[:k] for q in picks]
+        plane = plane_through_points(np.array([p[nb].mean(axis=0) for nb in neighbours]))
+        inl = np.zeros(n, bool)
+        inl[np.concatenate(neighbours)] = True
+        method = "three_points"
+        detail = {"three_points_px": picks.tolist(), "neighbours": k}
+    elif region is not None:
+        inl = region_mask(region, xy_px)
+        if inl.sum() < 3:
+            raise GeometryError(f"only {int(inl.sum())} matched points lie in the reference "
+                                f"region {_describe_region(region)}: it needs 3 or more")
+        plane = fit_reference_plane(p[inl])
+        method, detail = "region", _describe_region(region)
+    else:
+        plane, inl, used = ransac_plane(p, sig, k_sigma=k_sigma, n_iter=n_iter, seed=seed)
+        threshold = float(k_sigma * np.median(used))
+        method = "dominant_plane"
+        detail = {"k_sigma": k_sigma, "sigma_from": "points" if sig is None else "given"}
+    h = heights_above_plane(p[inl], plane)
+    q5, q95 = np.percentile(h, [5, 95])
+    return ReferenceSurface(
+        plane=np.asarray(plane, float), method=method, inliers=inl,
+        residual_rms_um=float(np.sqrt(np.mean(h ** 2))), spread_um=float(q95 - q5),
+        sigma_um=np.nan if sig is None else float(np.median(sig[inl])),
+        threshold_um=threshold, detail=detail, neighbours=neighbours)
+
+
+# ----------------------------------------------------------------------------- heights and errors
 
 def height_sigma(sigma_px, tilt_deg, pixel_size_um):
     """1σ height error propagated from per-point matching σ (first-order, known tilts).
@@ -192,11 +311,13 @@ def height_sigma(sigma_px, tilt_deg, pixel_size_um):
 
 
 def bootstrap_heights(pts, tilt_deg, pixel_size_um, n_boot=200, seed=0, sigma_px=None,
-                      tilt_axis_deg=90.0, progress=True):
+                      tilt_axis_deg=90.0, progress=True, reference=None):
     """Bootstrap 1σ of the height above the reference plane of every point.
 
     Each resample draws the points with replacement, estimates the per-view offsets and
-    fits the robust reference plane on them, and evaluates the height of *all* points;
+    fits the reference plane on them (``reference``: the same choice,
+    :meth:`ReferenceSurface.refit`; None: the robust plane of all points), and evaluates the
+    height of *all* points;
     with ``sigma_px`` the matches are also perturbed by Gaussian noise of that σ (x and y).
     The per-view offsets only shift all ``(x, z)`` by one constant (see
     :func:`semlab.reconstruct.heights_from_tilts`), which the plane absorbs exactly, so
@@ -220,14 +341,14 @@ def bootstrap_heights(pts, tilt_deg, pixel_size_um, n_boot=200, seed=0, sigma_px
         See :func:`semlab.reconstruct.heights_from_tilts`.
     progress : bool
         tqdm progress bar.
+    reference : ReferenceSurface, optional
+        How the reference plane was chosen (:func:`reference_surface`).
 
     Returns
     -------
     (N,) array
         Standard deviation of the height of each point over the resamples, µm.
     """
-    from .reconstruct import heights_from_tilts  # reconstruct imports surface lazily too
-
     if int(n_boot) < 2:
         raise GeometryError(f"n_boot must be >= 2, got {n_boot}")
     base = heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=tilt_axis_deg)
@@ -256,7 +377,8 @@ def bootstrap_heights(pts, tilt_deg, pixel_size_um, n_boot=200, seed=0, sigma_px
                                      tilt_axis_deg=tilt_axis_deg).xyz_um
         idx = rng.integers(0, n, n)
         try:
-            plane = fit_reference_plane(xyz[idx])
+            plane = fit_reference_plane(xyz[idx]) if reference is None \
+                else reference.refit(xyz, idx)
         except GeometryError:  # a degenerate (collinear) resample
             z[k] = np.nan
             continue

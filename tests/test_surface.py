@@ -8,7 +8,8 @@ from semlab.errors import GeometryError, SemlabError
 from semlab.reconstruct import heights_from_tilts, parallax_height
 from semlab.surface import (POINTS3D_COLUMNS, bootstrap_heights, fit_reference_plane,
                             height_sigma, height_trend, heights_above_plane, profile_along_line,
-                            read_points3d_csv, write_points3d_csv)
+                            ransac_plane, read_points3d_csv, reference_surface, region_mask,
+                            write_points3d_csv)
 
 S = 0.03
 PLANE = np.array([0.02, -0.01, 0.3])
@@ -69,6 +70,124 @@ def test_plane_errors():
     line[:, 1] = 2 * line[:, 0]
     with pytest.raises(GeometryError, match="collinear"):
         fit_reference_plane(line)
+
+
+# ----------------------------------------------------------------------------- reference surface
+
+#: 5-95 % range of a normal sample in σ: the floor of any substrate spread.
+NORMAL_5_95 = 2 * 1.6449
+
+
+def tall_object_on_substrate(seed=0, n=900, sigma_px=0.05, tilts=(-9.0, 9.0), amp_um=20.0):
+    """Matches of a Gaussian dome (``amp_um`` tall, σ 12 µm) on a tilted flat substrate.
+
+    100 × 100 µm at 0.1 µm/px; 60 % of the points are on the dome. Returns pts (N, 2, 2),
+    the true heights above the substrate (N,), the substrate mask, tilts and the z σ.
+    """
+    rng = np.random.default_rng(seed)
+    s = 0.1
+    n_dome = int(0.6 * n)
+    r = 30 * np.sqrt(rng.uniform(0, 1, n_dome))
+    a = rng.uniform(0, 2 * np.pi, n_dome)
+    dome_xy = np.column_stack([50 + r * np.cos(a), 50 + r * np.sin(a)])
+    sub_xy = rng.uniform(0, 100, (4 * (n - n_dome), 2))
+    sub_xy = sub_xy[np.hypot(*(sub_xy - 50).T) > 32][: n - n_dome]
+    xy = np.vstack([dome_xy, sub_xy])
+    h = amp_um * np.exp(-np.sum((xy - 50) ** 2, axis=1) / (2 * 12.0 ** 2))
+    h[n_dome:] = 0.0
+    z = 0.03 * xy[:, 0] - 0.02 * xy[:, 1] + h  # substrate tilted on the stage
+    xyz = np.column_stack([xy, z])
+    pts = np.stack([project_affine(xyz, t, s, (500.0 + 7 * i, 500.0))
+                    for i, t in enumerate(tilts)], 1)
+    pts = pts + rng.normal(0, sigma_px, pts.shape)
+    z_sig = height_sigma(sigma_px, tilts, s)
+    return pts, h, np.arange(len(xy)) >= n_dome, tilts, s, z_sig
+
+
+def test_dominant_plane_leaves_the_substrate_under_a_tall_object_flat():
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate()
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    ref = reference_surface(xyz, z_sig)
+    z = ref.heights(xyz)
+    spread = np.ptp(np.percentile(z[sub], [5, 95]))
+    assert ref.method == "dominant_plane"
+    assert spread <= 1.1 * NORMAL_5_95 * z_sig  # the noise floor (3.29 σ), no plane left
+    assert np.mean(ref.inliers[sub]) > 0.95 and np.mean(ref.inliers[~sub]) < 0.15
+    assert abs(np.median(z[~sub] - h[~sub])) < 3 * z_sig  # the dome measured, not levelled
+    # a robust fit through everything is tilted by the dome: many σ of spread
+    z_all = heights_above_plane(xyz, fit_reference_plane(xyz))
+    assert np.ptp(np.percentile(z_all[sub], [5, 95])) > 10 * z_sig
+
+
+def test_dominant_plane_estimates_sigma_from_the_points():
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate(seed=1)
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    ref = reference_surface(xyz)  # no σ given: least-median-of-squares scale
+    z = ref.heights(xyz)
+    assert 0.5 * z_sig < ref.threshold_um / 3 < 2 * z_sig
+    assert np.ptp(np.percentile(z[sub], [5, 95])) <= 1.15 * NORMAL_5_95 * z_sig
+
+
+def test_reference_region_rectangle_polygon_mask(tmp_path):
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate(seed=2)
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    xy0 = pts[:, 0]
+    rect = [xy0[:, 0].min(), xy0[:, 1].min(), xy0[:, 0].min() + 150, xy0[:, 1].max()]  # left band
+    poly = [[rect[0], rect[1]], [rect[2], rect[1]], [rect[2], rect[3]], [rect[0], rect[3]]]
+    m = np.zeros((1600, 1600), bool)
+    m[int(rect[1]):int(rect[3]) + 1, int(np.ceil(rect[0])):int(rect[2]) + 1] = True
+    inside = region_mask(rect, xy0)
+    assert inside.sum() > 30 and np.all(sub[inside])
+    assert np.array_equal(region_mask(poly, xy0), inside)
+    assert np.mean(region_mask(m, xy0) == inside) > 0.99
+    for region in (rect, poly, m):
+        ref = reference_surface(xyz, z_sig, xy_px=xy0, region=region)
+        assert ref.method == "region"
+        z = ref.heights(xyz)
+        assert np.ptp(np.percentile(z[sub], [5, 95])) <= 1.2 * NORMAL_5_95 * z_sig
+    d = reference_surface(xyz, z_sig, xy_px=xy0, region=rect).to_dict()
+    assert d["region"] == "rectangle" and d["n_inliers"] == inside.sum()
+    with pytest.raises(GeometryError, match="3 or more"):
+        reference_surface(xyz, z_sig, xy_px=xy0, region=[0, 0, 1, 1])
+    with pytest.raises(GeometryError, match="rectangle"):
+        reference_surface(xyz, z_sig, xy_px=xy0, region=[[0, 0], [1, 1]])
+
+
+def test_three_point_reference_plane():
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate(seed=3)
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    xy0 = pts[:, 0]
+    corners = xy0[sub][[np.argmin(xy0[sub, 0] + xy0[sub, 1]), np.argmax(xy0[sub, 0]),
+                        np.argmax(xy0[sub, 1])]]
+    ref = reference_surface(xyz, z_sig, xy_px=xy0, three_points_px=corners)
+    assert ref.method == "three_points" and ref.n_inliers == 15
+    z = ref.heights(xyz)
+    # three picked points (5 matches each) are noisier than a fit to the whole substrate
+    assert abs(np.median(z[sub])) < 2 * z_sig
+    assert np.ptp(np.percentile(z[sub], [5, 95])) <= 1.5 * NORMAL_5_95 * z_sig
+    with pytest.raises(GeometryError, match="not both"):
+        reference_surface(xyz, z_sig, xy_px=xy0, region=[0, 0, 9, 9], three_points_px=corners)
+    with pytest.raises(GeometryError, match="collinear"):
+        reference_surface(xyz, z_sig, xy_px=xy0, three_points_px=[[0, 0], [1, 1], [2, 2]])
+
+
+def test_ransac_plane_exact_and_errors():
+    xyz, h = plane_with_bands(n=200, frac=0.6)  # 60 % extrusions: more than a robust fit takes
+    plane, inl, _ = ransac_plane(xyz, 1e-6)
+    assert np.abs(plane - PLANE).max() < 1e-9 and np.array_equal(inl, h == 0)
+    with pytest.raises(GeometryError, match="common plane"):
+        ransac_plane(xyz[:10], 1e-6, min_inliers=10)
+
+
+def test_bootstrap_with_the_reference_choice():
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate(seed=4, n=300)
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    ref = reference_surface(xyz, z_sig)
+    sig_ref = bootstrap_heights(pts, tilts, s, n_boot=50, progress=False, reference=ref)
+    sig_all = bootstrap_heights(pts, tilts, s, n_boot=50, progress=False)
+    # resampling the substrate only moves its plane by ~σ/sqrt(N); the robust fit through the
+    # dome moves by far more
+    assert np.median(sig_ref[sub]) < 0.5 * z_sig < np.median(sig_all)
 
 
 # ----------------------------------------------------------------------------- errors
