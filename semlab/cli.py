@@ -40,12 +40,24 @@ def _cmd_info(args):
 
 
 def _cmd_synth(args):
-    from .synth import make_experiment
+    import dataclasses
 
+    from .synth import NOISE_LEVELS, make_experiment
+
+    detector = None
+    if args.noise != "gaussian":
+        detector = NOISE_LEVELS[args.noise]
+        if args.dose is not None:
+            detector = dataclasses.replace(detector, dose_e_per_px=args.dose)
+        if args.scan_jitter:
+            detector = dataclasses.replace(detector, jitter_px=args.scan_jitter)
+    elif args.dose is not None or args.scan_jitter:
+        raise SemlabError("--dose and --scan-jitter need the detector noise model: add "
+                          "--noise realistic (or --noise low)")
     path = make_experiment(args.out, seed=args.seed, size=args.size, pixel_size_um=args.pixel_size,
                            tilts_deg=args.tilts, n_frames=args.frames, n_clicks=args.clicks,
                            click_noise_px=args.click_noise, slip_um=args.slip,
-                           progress=not args.quiet)
+                           texture=args.texture, detector=detector, progress=not args.quiet)
     print(f"wrote {path}")
     return 0
 
@@ -79,6 +91,16 @@ def build_parser():
     ps.add_argument("--clicks", type=int, default=50, help="hand-click-like correspondences")
     ps.add_argument("--click-noise", type=float, default=0.5, help="click noise in px (default 0.5)")
     ps.add_argument("--slip", type=float, default=0.15, help="slip step across bands in µm")
+    ps.add_argument("--texture", choices=("speckle", "polished", "featureless"), default="speckle",
+                    help="texture regime (default speckle; polished: weak grains, sparse "
+                         "particles, slip lines; featureless: bands only)")
+    ps.add_argument("--noise", choices=("gaussian", "low", "realistic"), default="gaussian",
+                    help="gaussian: additive noise, 16-bit (default); low/realistic: SE shot "
+                         "noise for a dose, per-image gain/offset, 8-bit with saturation")
+    ps.add_argument("--dose", type=float, default=None,
+                    help="detected electrons per pixel at full signal (overrides the --noise preset)")
+    ps.add_argument("--scan-jitter", type=float, default=0.0,
+                    help="scan-line jitter in px (1σ row shift; default 0)")
     ps.add_argument("--quiet", action="store_true")
     ps.set_defaults(func=_cmd_synth)
 

@@ -7,15 +7,30 @@ A physically motivated generator that is exact under semlab's affine camera mode
 - **heights** ``z(x, y)`` (µm): slip-band extrusion/intrusion ribbons along a band direction
   (default 35° from the image x axis), amplitudes 0.05–0.3 µm growing toward high y (the
   reference paper's trend), crack-like grooves along some bands, a gentle plane trend;
-- **texture** ``T(x, y)``: material-attached contrast (Voronoi grains, a fine band-limited
-  surface texture and sparse bright particles), so features move with the material;
+- **texture** ``T(x, y)``: material-attached contrast, so features move with the material, in
+  one of three regimes (:data:`TEXTURES`, ``make_scene(texture=...)``):
+
+  - ``"speckle"``: Voronoi grains (±8 %), a fine band-limited texture (10 %, ~1.3 px
+    correlation) and dense bright particles (one per 500 px²): nearly a DIC speckle pattern;
+  - ``"polished"``: what a polished, fatigued nickel or steel surface looks like: weak grain
+    contrast (±3 %), a faint polishing texture (6 %, ~1.5 px correlation), sparse particles
+    (one per 6000 px²) and fine slip lines along the bands (8 % contrast, broken along their
+    length). With the ``"realistic"`` detector at ±5° and 0.03 µm/px, the Cramér–Rao bound of
+    a 21×21 translation subset on its flat parts is about 25 nm of height (11 nm on
+    ``"speckle"``);
+  - ``"featureless"``: no material texture at all; the slip bands' topographic contrast is the
+    only signal;
 - **displacement** ``U(x, y)`` (µm) from the earliest frame to the end state: slip mostly along
   y with steps across the bands, a small x component, plus an optional uniform strain. At frame
   ``n`` the material point ``x`` sits at ``x − (1 − f_n) U(x)`` and its height is ``g_n z(x)``
   with ``f_n`` and ``g_n`` growing from 0 to 1 with the cycles;
 - **image formation** (secondary electrons): yield rising with the local incidence angle
-  (secant law), edge brightening on convex edges, Gaussian beam blur, noise, a per-frame
-  brightness/contrast drift; early frames have weak contrast (nearly featureless);
+  (secant law), edge brightening on convex edges, Gaussian beam blur, a per-frame
+  brightness/contrast drift; early frames have weak contrast (nearly featureless). Noise is
+  either additive Gaussian on a 16-bit image (the default, ``detector=None``) or the
+  :class:`Detector` model: Poisson shot noise for a given dose (detected electrons per pixel),
+  per-image gain/offset, optional scan-line jitter, 8-bit quantisation with saturation
+  (:func:`detect`; presets :data:`NOISE_LEVELS` ``"low"`` and ``"realistic"``);
 - **views**: end-state view at stage tilt θ samples, for each pixel ``(u, v)``, the material
   point solving ``u = cx + (x cosθ + z(x, y) sinθ)/s``, ``v = cy + y/s`` (fixed-point
   iteration; slopes ≪ cot θ so there is no occlusion);
@@ -27,6 +42,7 @@ A physically motivated generator that is exact under semlab's affine camera mode
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +84,7 @@ class Scene:
     texture: np.ndarray = field(repr=False)        # spline coefficients of T on the raster
     particles_um: np.ndarray = field(repr=False)   # (P, 2) particle centres
     pixel_size_um: float = 0.03
+    texture_kind: str = "speckle"    # one of TEXTURES (or "particles")
 
     # -- geometry helpers ---------------------------------------------------------------------
     def _band_coords(self, x, y):
@@ -124,9 +141,29 @@ class Scene:
         return 1.0 + grain + contrast * fine
 
 
+#: Texture regimes of :func:`make_scene` (see the module docstring).
+TEXTURES = ("speckle", "polished", "featureless")
+
+#: Per-regime texture parameters: particle density (image px² per particle; None: no particles),
+#: particle amplitude range, fine-texture amplitude and correlation length (image px), grain
+#: contrast (±), mean grain area (µm²), slip-line contrast (0: none).
+_TEXTURE_PARAMS = {
+    "speckle": dict(px_per_particle=500, particle_amp=(0.5, 1.0), fine_amp=0.10, fine_corr_px=1.3,
+                    grain_contrast=0.08, grain_area_um2=16.0, slip_line_amp=0.0),
+    "particles": dict(px_per_particle=1500, particle_amp=(0.5, 1.0), fine_amp=0.0, fine_corr_px=1.3,
+                      grain_contrast=0.0, grain_area_um2=16.0, slip_line_amp=0.0),
+    "polished": dict(px_per_particle=6000, particle_amp=(0.3, 0.8), fine_amp=0.06,
+                     fine_corr_px=1.5, grain_contrast=0.03, grain_area_um2=40.0,
+                     slip_line_amp=0.08),
+    "featureless": dict(px_per_particle=None, particle_amp=(0.0, 0.0), fine_amp=0.0,
+                        fine_corr_px=1.3, grain_contrast=0.0, grain_area_um2=16.0,
+                        slip_line_amp=0.0),
+}
+
+
 def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0, n_bands=6,
                amplitude_um=(0.05, 0.3), n_cracks=1, slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0),
-               flat=False, texture="sem"):
+               flat=False, texture="speckle"):
     """Draw the random parameters of a synthetic sample.
 
     Parameters
@@ -149,10 +186,15 @@ def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0,
         Uniform small strain of the displacement field (dimensionless).
     flat : bool
         No heights at all (z ≡ 0), for tests of the projection model.
-    texture : {"sem", "particles"}
-        ``"particles"`` gives isolated Gaussian particles on a uniform background (for
-        centroid tests of the projection).
+    texture : {"speckle", "polished", "featureless", "particles"}
+        Texture regime (:data:`TEXTURES`, described in the module docstring); ``"sem"`` is the
+        old name of ``"speckle"``. ``"particles"`` gives isolated Gaussian particles on a
+        uniform background (for centroid tests of the projection). The heights and the
+        displacement field do not depend on it: one seed gives the same surface in every regime.
     """
+    kind = "speckle" if texture == "sem" else texture
+    if kind not in _TEXTURE_PARAMS:
+        raise SemlabError(f"texture must be one of {TEXTURES} (or 'particles'), got {texture!r}")
     rng = np.random.default_rng(seed)
     h, w = size
     s = float(pixel_size_um)
@@ -178,7 +220,8 @@ def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0,
     margin = 1.5 + 4 * slip_um + 0.02 * diag
     extent = (-half_w - margin, half_w + margin, -half_h - margin, half_h + margin)
     step = s / 2.0
-    tex, particles = _make_texture(rng, extent, step, s, texture)
+    bands = (float(band_angle_deg), offsets, widths)
+    tex, particles = _make_texture(rng, extent, step, s, kind, bands)
     return Scene(
         band_angle_deg=float(band_angle_deg), band_offsets_um=offsets, band_widths_um=widths,
         band_amplitudes_um=amps, band_slip_um=slip, edge_um=0.1,
@@ -188,27 +231,31 @@ def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0,
         y_gain_per_um=0.0 if flat else 0.6 / (2 * half_h),
         uniform_strain=tuple(float(v) for v in uniform_strain), slip_x_fraction=0.15,
         extent_um=extent, texture_step_um=step, texture=tex, particles_um=particles,
-        pixel_size_um=s)
+        pixel_size_um=s, texture_kind=kind)
 
 
-def _make_texture(rng, extent, step, s, kind):
-    """Spline coefficients of (fine texture + particles, grain contrast) on a raster."""
+def _make_texture(rng, extent, step, s, kind, bands):
+    """Spline coefficients of (fine texture + particles + slip lines, grain contrast) on a raster.
+
+    ``bands`` = (angle_deg, offsets_um, widths_um) places the slip lines of ``"polished"``.
+    The random draws of ``"speckle"`` are in the order of the original generator, so a seed
+    gives the same images as before the regimes existed.
+    """
+    par = _TEXTURE_PARAMS[kind]
     xmin, xmax, ymin, ymax = extent
     nx = int(np.ceil((xmax - xmin) / step)) + 1
     ny = int(np.ceil((ymax - ymin) / step)) + 1
     area_px = (xmax - xmin) * (ymax - ymin) / s ** 2
-    n_part = int(area_px / (1500 if kind == "particles" else 500))
+    n_part = int(area_px / par["px_per_particle"]) if par["px_per_particle"] else 0
     particles = np.column_stack([rng.uniform(xmin + 1, xmax - 1, n_part),
                                  rng.uniform(ymin + 1, ymax - 1, n_part)])
     sig = rng.uniform(1.0, 1.8, n_part) * s / step  # raster px
-    amp = rng.uniform(0.5, 1.0, n_part)
+    amp = rng.uniform(*par["particle_amp"], n_part)
     fine = np.zeros((ny, nx))
-    if kind == "sem":
-        # band-limited surface texture: white noise smoothed to ~1.3 image px correlation
-        fine = ndimage.gaussian_filter(rng.standard_normal((ny, nx)), 1.3 * s / step)
-        fine *= 0.10 / fine.std()
-    elif kind != "particles":
-        raise SemlabError(f"texture must be 'sem' or 'particles', got {kind!r}")
+    if par["fine_amp"]:
+        # band-limited surface texture: white noise smoothed to the correlation length
+        fine = ndimage.gaussian_filter(rng.standard_normal((ny, nx)), par["fine_corr_px"] * s / step)
+        fine *= par["fine_amp"] / fine.std()
     # particles, drawn analytically
     rr = np.arange(ny)
     cc = np.arange(nx)
@@ -219,21 +266,54 @@ def _make_texture(rng, extent, step, s, kind):
         gr = np.exp(-0.5 * ((rr[r_lo:r_hi] - r0) / sg) ** 2)
         gc = np.exp(-0.5 * ((cc[c_lo:c_hi] - c0) / sg) ** 2)
         fine[r_lo:r_hi, c_lo:c_hi] += a * np.outer(gr, gc)
-    if kind == "sem":
-        # Voronoi grains (~4 µm) with ±8 % contrast, soft boundaries
+    if par["grain_contrast"]:
+        # Voronoi grains with soft boundaries
         from scipy.spatial import cKDTree
 
-        n_grains = max(4, int((xmax - xmin) * (ymax - ymin) / 16.0))
+        n_grains = max(4, int((xmax - xmin) * (ymax - ymin) / par["grain_area_um2"]))
         seeds = np.column_stack([rng.uniform(xmin, xmax, n_grains), rng.uniform(ymin, ymax, n_grains)])
-        level = rng.uniform(-0.08, 0.08, n_grains)
+        level = rng.uniform(-par["grain_contrast"], par["grain_contrast"], n_grains)
         yy, xx = np.mgrid[0:ny, 0:nx]
         _, lab = cKDTree(seeds).query(np.column_stack([xmin + xx.ravel() * step,
                                                        ymin + yy.ravel() * step]))
         grain = ndimage.gaussian_filter(level[lab].reshape(ny, nx), 1.5)
     else:
         grain = np.zeros((ny, nx))
+    if par["slip_line_amp"]:
+        fine += _slip_lines(rng, extent, step, s, bands, par["slip_line_amp"], (ny, nx))
     coeffs = np.stack([ndimage.spline_filter(fine, order=3), ndimage.spline_filter(grain, order=3)])
     return coeffs, particles
+
+
+def _slip_lines(rng, extent, step, s, bands, amp, shape):
+    """Fine slip lines inside each band ribbon (raster of the texture).
+
+    Lines run along the band direction, 3–8 px apart, about 1 px wide (Gaussian profile), each
+    with a random signed contrast of up to ``amp`` and broken along its length (a smooth random
+    envelope), so that they carry information along the band as well as across it.
+    """
+    angle_deg, offsets, widths = bands
+    ny, nx = shape
+    xmin, _, ymin, _ = extent
+    a = np.deg2rad(angle_deg)
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    x = xmin + xx * step
+    y = ymin + yy * step
+    along = x * np.cos(a) + y * np.sin(a)
+    normal = -x * np.sin(a) + y * np.cos(a)
+    out = np.zeros(shape)
+    # smooth random envelope along the lines (correlation ~10 px), thresholded into segments
+    env_noise = ndimage.gaussian_filter(rng.standard_normal(shape), 10 * s / step)
+    env_noise /= env_noise.std() + 1e-12
+    for c, w in zip(offsets, widths):
+        n_lines = max(2, int(w / (5.5 * s)))
+        pos = c + np.sort(rng.uniform(-w / 2, w / 2, n_lines))
+        for p in pos:
+            sign_amp = amp * rng.uniform(0.4, 1.0) * rng.choice([-1.0, 1.0])
+            phase = rng.uniform(0, 2 * np.pi)
+            env = 0.5 * (1 + np.tanh(2.0 * (env_noise + np.sin(along / (6 * s) + phase) * 0.3)))
+            out += sign_amp * env * np.exp(-0.5 * ((normal - p) / (0.5 * s)) ** 2)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -332,6 +412,100 @@ def render(scene, shape, tilt_deg=0.0, center_px=None, height_scale=1.0, disp_fr
         img = img + rng.normal(0, noise, img.shape)
     img = gain * img + offset
     return img, x, y
+
+
+@dataclass(frozen=True)
+class Detector:
+    """Secondary-electron detection and digitisation of a rendered image (:func:`detect`).
+
+    Attributes
+    ----------
+    dose_e_per_px : float
+        Mean number of detected electrons per pixel for a relative signal of 1 (a flat
+        surface renders at about 0.45). The shot noise is Poisson: a pixel of relative signal
+        ``I`` has a relative standard deviation ``1/sqrt(dose · I)``.
+    bits : int
+        Digitiser depth (8: 0..255 counts); the image is written as uint8 (bits ≤ 8) or uint16.
+    full_scale : float
+        Relative signal at the top count; brighter pixels saturate there, negative ones at 0.
+    gain_sd, offset_sd : float
+        Per-image contrast/brightness setting: gain ``1 + N(0, gain_sd)`` and offset
+        ``N(0, offset_sd)`` (relative signal), drawn for every image.
+    jitter_px : float
+        Scan-line jitter: every image row is shifted along x by ``N(0, jitter_px)`` pixels
+        (before the noise). It moves features away from their truth positions: an error
+        source, off by default.
+    """
+
+    dose_e_per_px: float = 1000.0
+    bits: int = 8
+    full_scale: float = 1.0
+    gain_sd: float = 0.05
+    offset_sd: float = 0.02
+    jitter_px: float = 0.0
+
+    def __post_init__(self):
+        if not self.dose_e_per_px > 0:
+            raise SemlabError(f"Detector dose_e_per_px must be > 0, got {self.dose_e_per_px!r}")
+        if not 1 <= int(self.bits) <= 16:
+            raise SemlabError(f"Detector bits must be 1..16, got {self.bits!r}")
+        if not self.full_scale > 0:
+            raise SemlabError(f"Detector full_scale must be > 0, got {self.full_scale!r}")
+        if min(self.gain_sd, self.offset_sd, self.jitter_px) < 0:
+            raise SemlabError("Detector gain_sd, offset_sd and jitter_px must be >= 0")
+
+
+#: Noise presets: ``"low"`` (a slow, high-dose scan: shot noise 0.5 % of a flat surface's
+#: signal) and ``"realistic"`` (a typical photo-quality scan: 2.1 %, signal-to-noise ~21).
+NOISE_LEVELS = {
+    "low": Detector(dose_e_per_px=20000.0),
+    "realistic": Detector(dose_e_per_px=1000.0),
+}
+
+
+def as_detector(detector):
+    """A :class:`Detector` from a Detector, a :data:`NOISE_LEVELS` name, or None (None)."""
+    if detector is None or isinstance(detector, Detector):
+        return detector
+    if isinstance(detector, str) and detector in NOISE_LEVELS:
+        return NOISE_LEVELS[detector]
+    raise SemlabError(f"detector must be a synth.Detector, one of {tuple(NOISE_LEVELS)} or None, "
+                      f"got {detector!r}")
+
+
+def detect(img, detector, rng=None, gain=None, offset=None):
+    """Detect and digitise a noise-free relative image: jitter, shot noise, gain, 8-bit counts.
+
+    Parameters
+    ----------
+    img : (H, W) float array
+        Relative signal (about 0..1), e.g. from :func:`render` with ``noise=0``.
+    detector : Detector or str
+        The model, or a :data:`NOISE_LEVELS` name.
+    rng : numpy Generator, optional
+    gain, offset : float, optional
+        This image's contrast and brightness; default drawn from the detector's spreads.
+
+    Returns
+    -------
+    (H, W) uint8 array (``bits`` ≤ 8) or uint16 array of counts, saturated at 0 and
+    ``2**bits − 1``.
+    """
+    det = as_detector(detector)
+    rng = np.random.default_rng() if rng is None else rng
+    img = np.asarray(img, float)
+    if det.jitter_px:
+        h, w = img.shape
+        shift = rng.normal(0, det.jitter_px, h)
+        vv, uu = np.mgrid[0:h, 0:w].astype(float)
+        img = ndimage.map_coordinates(img, [vv, uu - shift[:, None]], order=3, mode="nearest")
+    gain = 1.0 + rng.normal(0, det.gain_sd) if gain is None else gain
+    offset = rng.normal(0, det.offset_sd) if offset is None else offset
+    electrons = rng.poisson(det.dose_e_per_px * np.clip(img, 0, None))
+    signal = gain * electrons / det.dose_e_per_px + offset
+    top = 2 ** int(det.bits) - 1
+    counts = np.clip(np.round(signal / det.full_scale * top), 0, top)
+    return counts.astype(np.uint8 if det.bits <= 8 else np.uint16)
 
 
 def project_points(scene, xy_um, tilt_deg, shape, center_px=None, height_scale=1.0):
@@ -532,7 +706,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
                     slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0), band_angle_deg=35.0,
                     noise=0.01, frame_noise=0.012, early_contrast=0.3, write_block=True,
                     block_size=(768, 1024), tilt_in_toml=True, tilt_in_metadata=True,
-                    name=None, overwrite=False, progress=True):
+                    name=None, overwrite=False, progress=True, texture="speckle", detector=None,
+                    scene=None, blur_px=0.7, shading=True):
     """Write a complete synthetic experiment folder with ground truth.
 
     Parameters
@@ -561,6 +736,19 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         Image noise of the views and of the series frames (relative to mean ~0.45).
     early_contrast : float
         Texture contrast of frame 0 (it grows linearly with f_n to 1 at the end).
+    texture : {"speckle", "polished", "featureless"}
+        Texture regime of the scene (:data:`TEXTURES`).
+    detector : Detector, "low", "realistic" or None
+        None: additive Gaussian noise (``noise``, ``frame_noise``) and 16-bit images. Otherwise
+        the secondary-electron model of :func:`detect` (shot noise for a dose, per-image
+        gain/offset, optional scan-line jitter, 8-bit counts with saturation); ``noise`` and
+        ``frame_noise`` are then unused.
+    scene : Scene, optional
+        Use this scene instead of drawing one (``seed`` still seeds the noise; ``texture``,
+        ``slip_um``, ``uniform_strain``, ``band_angle_deg`` are then ignored). Used by
+        :mod:`semlab.realtex` for real-image textures.
+    blur_px, shading
+        Passed to :func:`render` for every view and frame.
 
     Returns
     -------
@@ -593,8 +781,17 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         raise SemlabError("nothing to make: give tilts_deg (2+) or n_frames (>= 1)")
     h, w = size
     rng = np.random.default_rng(seed + 1000)
-    scene = make_scene(seed=seed, size=size, pixel_size_um=pixel_size_um,
-                       band_angle_deg=band_angle_deg, slip_um=slip_um, uniform_strain=uniform_strain)
+    det = as_detector(detector)
+    if scene is None:
+        scene = make_scene(seed=seed, size=size, pixel_size_um=pixel_size_um,
+                           band_angle_deg=band_angle_deg, slip_um=slip_um,
+                           uniform_strain=uniform_strain, texture=texture)
+    elif not np.isclose(scene.pixel_size_um, pixel_size_um):
+        raise SemlabError(f"scene.pixel_size_um = {scene.pixel_size_um} differs from "
+                          f"pixel_size_um = {pixel_size_um}; pass the scene's pixel size")
+
+    def digitise(img):
+        return to_uint16(img) if det is None else detect(img, det, rng)
     centre = image_center(size)
     s = pixel_size_um
     for sub in ("end_state", "series", "annotations", "calibration", "truth"):
@@ -605,9 +802,10 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
     bar = tqdm(total=len(tilts) + n_frames, desc="rendering", disable=not progress)
     view_files = []
     for i, t in enumerate(tilts):
-        img, x, y = render(scene, size, t, noise=noise, rng=rng)
+        img, x, y = render(scene, size, t, noise=0.0 if det else noise, rng=rng, blur_px=blur_px,
+                           shading=shading)
         f = out / "end_state" / f"view_{i}.tif"
-        write_tiff(f, to_uint16(img), pixel_size_um=s, tilt_deg=t if tilt_in_metadata else None,
+        write_tiff(f, digitise(img), pixel_size_um=s, tilt_deg=t if tilt_in_metadata else None,
                    overwrite=overwrite)
         view_files.append(f.relative_to(out).as_posix())
         if i == 0:
@@ -625,9 +823,10 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         offset = 0.04 * np.cos(2.3 * n + seed)
         img, _, _ = render(scene, size, 0.0, height_scale=g_frac[n],
                            disp_fraction_left=1.0 - f_frac[n], contrast=contrast,
-                           noise=frame_noise, gain=gain, offset=offset, rng=rng)
+                           noise=0.0 if det else frame_noise, gain=gain, offset=offset, rng=rng,
+                           blur_px=blur_px, shading=shading)
         fpath = out / "series" / f"frame_{n:03d}.tif"
-        write_tiff(fpath, to_uint16(img), pixel_size_um=s, tilt_deg=0.0, overwrite=overwrite)
+        write_tiff(fpath, digitise(img), pixel_size_um=s, tilt_deg=0.0, overwrite=overwrite)
         frame_files.append(fpath.relative_to(out).as_posix())
         bar.update()
     bar.close()
@@ -709,7 +908,9 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
                   "band_slip_um": scene.band_slip_um.tolist(),
                   "crack_offsets_um": scene.crack_offsets_um.tolist(),
                   "cycles": cycles.tolist(), "f": f_frac.tolist(), "g": g_frac.tolist(),
-                  "click_noise_px": click_noise_px, "line_noise_px": line_noise_px}
+                  "click_noise_px": click_noise_px, "line_noise_px": line_noise_px,
+                  "texture": scene.texture_kind,
+                  "detector": None if det is None else dataclasses.asdict(det)}
     with open(out / "truth" / "scene.json", "w") as fh:
         json.dump(scene_info, fh, indent=1)
 
@@ -753,9 +954,38 @@ def _choose_clicks(scene, parts, n_clicks, size, tilts, rng):
             cpts = line[np.linspace(0, len(line) - 1, n_crack).round().astype(int)]
     # particles make up the rest, so that n_clicks points are written whenever possible
     sel = cand[chosen[: n_clicks - len(cpts)]]
-    pts = [sel, cpts]
-    crack_id = [-1] * len(sel) + [1] * len(cpts)
+    # sparse-particle regimes: band edges make up the rest (speckle keeps its particle clicks
+    # only, as it always did, so that its experiments are unchanged)
+    n_edge = n_clicks - len(cpts) - len(sel) if scene.texture_kind in ("polished", "featureless") \
+        else 0
+    edge = _band_edge_points(scene, n_edge, hx - 25 * s, hy - 25 * s, 12 * s, rng) \
+        if n_edge > 0 else np.zeros((0, 2))
+    pts = [sel, edge, cpts]
+    crack_id = [-1] * (len(sel) + len(edge)) + [1] * len(cpts)
     return {"xy_um": np.vstack(pts), "crack_id": np.array(crack_id)}
+
+
+def _band_edge_points(scene, n, hx, hy, min_sep_um, rng):
+    """Up to ``n`` points on band-ribbon edges inside ``|x| < hx, |y| < hy`` (µm): what a person
+    clicks where the surface has too few particles (``polished``, ``featureless``)."""
+    a = np.deg2rad(scene.band_angle_deg)
+    along_dir = np.array([np.cos(a), np.sin(a)])
+    normal = np.array([-np.sin(a), np.cos(a)])
+    lines = [c + sgn * w / 2 for c, w in zip(scene.band_offsets_um, scene.band_widths_um)
+             for sgn in (-1.0, 1.0)]
+    if not lines:
+        return np.zeros((0, 2))
+    span = np.hypot(hx, hy)
+    cand = np.vstack([np.linspace(-span, span, 400)[:, None] * along_dir + c * normal
+                      for c in lines])
+    cand = cand[(np.abs(cand[:, 0]) < hx) & (np.abs(cand[:, 1]) < hy)]
+    chosen = []
+    for i in rng.permutation(len(cand)):
+        if all(np.hypot(*(cand[i] - cand[j])) > min_sep_um for j in chosen):
+            chosen.append(i)
+            if len(chosen) == n:
+                break
+    return cand[chosen]
 
 
 def _write_csv(path, cols, blank_negative=None):

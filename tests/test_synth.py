@@ -1,5 +1,6 @@
 """The synthetic generator is exact under the affine camera model."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -170,3 +171,157 @@ def test_make_experiment_refuses_nonempty(tmp_path):
         synth.make_experiment(tmp_path / "x", progress=False)
     with pytest.raises(SemlabError, match="2 or more"):
         synth.make_experiment(tmp_path / "y", tilts_deg=(5.0,), progress=False)
+
+
+# --- texture regimes and the secondary-electron detector ---------------------------------------
+
+
+def _flat_texture_energy(scene, shape=SHAPE):
+    """Mean squared x-gradient of a noise-free, flat-lit rendering (texture information)."""
+    img, _, _ = synth.render(scene, shape, 0.0, blur_px=0.7, noise=0, shading=False)
+    return float(np.mean(ndimage.sobel(img, 1) ** 2)), img
+
+
+def test_texture_regimes_share_the_surface_and_order_the_information():
+    scenes = {k: synth.make_scene(seed=3, size=SHAPE, texture=k) for k in synth.TEXTURES}
+    xy = np.random.default_rng(0).uniform(-1.4, 1.4, (50, 2))
+    z = {k: sc.height(xy[:, 0], xy[:, 1]) for k, sc in scenes.items()}
+    np.testing.assert_array_equal(z["speckle"], z["polished"])
+    np.testing.assert_array_equal(z["speckle"], z["featureless"])
+    energy = {k: _flat_texture_energy(sc)[0] for k, sc in scenes.items()}
+    # polished: a few times less gradient energy than speckle; featureless: none at all
+    assert 3 * energy["polished"] < energy["speckle"]
+    assert energy["featureless"] < 1e-12 < energy["polished"]
+    assert len(scenes["featureless"].particles_um) == 0
+    assert 5 * len(scenes["polished"].particles_um) < len(scenes["speckle"].particles_um)
+    assert scenes["polished"].texture_kind == "polished"
+
+
+def test_speckle_is_the_old_sem_texture_and_unknown_regimes_are_refused():
+    a = synth.make_scene(seed=1, size=SHAPE, texture="sem")
+    b = synth.make_scene(seed=1, size=SHAPE)
+    np.testing.assert_array_equal(a.texture, b.texture)
+    assert b.texture_kind == "speckle"
+    with pytest.raises(SemlabError, match="texture must be one of"):
+        synth.make_scene(seed=1, size=SHAPE, texture="glossy")
+
+
+def test_regimes_render_the_same_geometry():
+    sp = synth.make_scene(seed=5, size=SHAPE, texture="speckle")
+    po = synth.make_scene(seed=5, size=SHAPE, texture="polished")
+    _, x0, y0 = synth.render(sp, SHAPE, 8.0, noise=0)
+    _, x1, y1 = synth.render(po, SHAPE, 8.0, noise=0)
+    np.testing.assert_array_equal(x0, x1)
+    np.testing.assert_array_equal(y0, y1)
+
+
+def test_polished_slip_lines_lie_inside_the_bands(monkeypatch):
+    sc = synth.make_scene(seed=2, size=(192, 256), texture="polished")
+    monkeypatch.setitem(synth._TEXTURE_PARAMS["polished"], "slip_line_amp", 0.0)
+    bare = synth.make_scene(seed=2, size=(192, 256), texture="polished")
+    x, y = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-2, 2, 200))
+    lines = sc.texture_at(x, y) - bare.texture_at(x, y)  # the slip lines alone
+    _, n = sc._band_coords(x, y)
+    near = np.zeros(x.shape, bool)
+    for c, w in zip(sc.band_offsets_um, sc.band_widths_um):
+        near |= np.abs(n - c) < w / 2 + 3 * 0.5 * sc.pixel_size_um
+    assert near.any() and (~near).any()
+    assert np.abs(lines[near]).max() > 0.03
+    assert np.abs(lines[~near]).max() < 0.01 * np.abs(lines[near]).max()
+
+
+def test_detector_shot_noise_follows_poisson_statistics():
+    det = synth.Detector(dose_e_per_px=400.0, bits=16, gain_sd=0, offset_sd=0)
+    img = np.full((200, 200), 0.45)
+    c = synth.detect(img, det, np.random.default_rng(0)).astype(float) / 65535
+    assert c.mean() == pytest.approx(0.45, abs=2e-3)
+    assert c.std() == pytest.approx(np.sqrt(0.45 / 400.0), rel=0.03)
+    # four times the dose halves the noise
+    c4 = synth.detect(img, dataclasses.replace(det, dose_e_per_px=1600.0),
+                      np.random.default_rng(1)).astype(float) / 65535
+    assert c4.std() == pytest.approx(c.std() / 2, rel=0.05)
+
+
+def test_detector_quantises_to_8_bits_and_saturates():
+    det = synth.Detector(dose_e_per_px=1e6, gain_sd=0, offset_sd=0)
+    img = np.tile(np.linspace(-0.2, 1.3, 301), (4, 1))
+    c = synth.detect(img, det, np.random.default_rng(0))
+    assert c.dtype == np.uint8
+    assert np.all(c[:, img[0] < -0.01] == 0) and np.all(c[:, img[0] > 1.01] == 255)
+    mid = (img[0] > 0.1) & (img[0] < 0.9)
+    np.testing.assert_allclose(c[:, mid], np.round(img[:, mid] * 255), atol=1)
+    # per-image gain and offset
+    g = synth.detect(img, det, np.random.default_rng(0), gain=1.1, offset=0.05)
+    np.testing.assert_allclose(g[:, mid].astype(float),
+                               np.clip(np.round((1.1 * img[:, mid] + 0.05) * 255), 0, 255), atol=1.5)
+    with pytest.raises(SemlabError, match="dose_e_per_px"):
+        synth.Detector(dose_e_per_px=0)
+    with pytest.raises(SemlabError, match="NOISE_LEVELS|detector must be"):
+        synth.detect(img, "loud")
+
+
+def _edge_positions(img):
+    """Sub-pixel x of the half-maximum crossing of a dark-to-bright edge, per row."""
+    lo, hi = img[:, :5].mean(), img[:, -5:].mean()
+    half = (lo + hi) / 2
+    out = []
+    for row in img.astype(float):
+        k = int(np.argmax(row > half))
+        out.append(k - 1 + (half - row[k - 1]) / (row[k] - row[k - 1]))
+    return np.array(out)
+
+
+def test_scan_line_jitter_shifts_rows():
+    h, w = 300, 40
+    uu = np.arange(w, dtype=float)
+    img = np.tile(0.2 + 0.6 / (1 + np.exp(-(uu - 20.3) / 1.5)), (h, 1))
+    calm = synth.Detector(dose_e_per_px=1e7, bits=16, gain_sd=0, offset_sd=0)
+    shaky = dataclasses.replace(calm, jitter_px=0.3)
+    e0 = _edge_positions(synth.detect(img, calm, np.random.default_rng(0)))
+    e1 = _edge_positions(synth.detect(img, shaky, np.random.default_rng(0)))
+    assert np.std(e0) < 0.02
+    assert np.std(e1) == pytest.approx(0.3, rel=0.2)
+
+
+@pytest.mark.parametrize("texture", ["polished", "featureless"])
+def test_make_experiment_with_regime_and_detector(tmp_path, texture):
+    from semlab.io import read_image
+
+    out = tmp_path / "exp"
+    synth.make_experiment(out, seed=3, size=(96, 128), n_frames=2, n_clicks=10, texture=texture,
+                          detector="realistic", write_block=False, progress=False)
+    info = json.loads((out / "truth" / "scene.json").read_text())
+    assert info["texture"] == texture
+    assert info["detector"]["dose_e_per_px"] == synth.NOISE_LEVELS["realistic"].dose_e_per_px
+    im = read_image(out / "end_state" / "view_0.tif")
+    assert im.bit_depth == 8 and im.pixel_size_um == pytest.approx(0.03)
+    assert 60 < im.data.mean() < 180
+    f0 = read_image(out / "series" / "frame_000.tif")
+    assert f0.bit_depth == 8
+    rows = np.genfromtxt(out / "annotations" / "correspondences.csv", delimiter=",", names=True)
+    assert len(rows) >= 8  # band-edge clicks make up for the missing particles
+    # the clicks sit near the truth projections of their material points (0.5 px click noise)
+    scene = synth.make_scene(seed=3, size=(96, 128), texture=texture)
+    assert scene.texture_kind == texture
+    t = synth.read_truth_points(out / "truth")
+    np.testing.assert_allclose(scene.height(t["x_um"], t["y_um"]), t["z_um"], atol=1e-9)
+
+
+def test_make_experiment_refuses_a_scene_of_another_pixel_size(tmp_path):
+    scene = synth.make_scene(seed=0, size=SHAPE, pixel_size_um=0.05)
+    with pytest.raises(SemlabError, match="pixel size"):
+        synth.make_experiment(tmp_path / "e", size=SHAPE, scene=scene, progress=False)
+
+
+def test_cli_synth_texture_and_noise(tmp_path, capsys):
+    from semlab.cli import main
+    from semlab.io import read_image
+
+    out = tmp_path / "s"
+    assert main(["synth", str(out), "--size", "64x96", "--frames", "0", "--clicks", "0",
+                 "--texture", "polished", "--noise", "realistic", "--dose", "500", "--quiet"]) == 0
+    info = json.loads((out / "truth" / "scene.json").read_text())
+    assert info["texture"] == "polished" and info["detector"]["dose_e_per_px"] == 500.0
+    assert read_image(out / "end_state" / "view_1.tif").bit_depth == 8
+    assert main(["synth", str(tmp_path / "t"), "--dose", "500", "--quiet"]) == 2
+    assert "--noise realistic" in capsys.readouterr().err
