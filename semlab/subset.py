@@ -40,6 +40,7 @@ not converge gets ``NaN`` positions, ``converged = False`` and a ``reason``.
 
 from __future__ import annotations
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ from scipy import fft as sfft
 from scipy import ndimage
 
 from .errors import ImageError, SemlabError
+from .noise import filter_noise_gain, image_noise_sigma
 
 __all__ = ["SubsetResult", "zncc_match", "icgn_refine", "prefilter_image", "oriented_subset"]
 
@@ -85,12 +87,21 @@ class SubsetResult:
     n_iter : (N,) int array
         IC-GN iterations used.
     sigma_px : (N, 2) float array
-        Estimated 1σ random error of ``pts`` in x and y, pixels: residual variance times
-        the corresponding diagonal entry of the inverse Gauss–Newton Hessian (propagated to
-        the sub-pixel reference position; corrected for Gaussian pre-smoothing). It does
-        not include interpolation bias. NaN where not converged.
+        Predicted 1σ random error of ``pts`` in x and y, pixels, from the Gauss–Newton
+        covariance of the subset and the measured image noise (see :func:`icgn_refine`),
+        propagated to the sub-pixel reference position. It does not include
+        interpolation bias. NaN where not converged; inf where the reference subset's
+        texture does not stand above its noise.
     reason : (N,) str array
         Empty where converged, otherwise why not.
+    residual_ratio : (N,) float array
+        Residual variance of the matched subset over the variance the measured image
+        noise predicts (about 1 for a subset that fits its shape function; much more than
+        1 where it does not, e.g. across a height step or an occlusion). NaN where not
+        converged or where the noise is taken from the residual.
+    noise_sigma : (2,) float array
+        Noise standard deviation of the reference and current images used for
+        ``sigma_px`` (grey units; NaN with ``noise_sigma="residual"``).
     """
 
     pts: np.ndarray
@@ -100,6 +111,8 @@ class SubsetResult:
     n_iter: np.ndarray
     sigma_px: np.ndarray
     reason: np.ndarray
+    residual_ratio: np.ndarray = None
+    noise_sigma: np.ndarray = None
 
     def __len__(self):
         return len(self.pts)
@@ -156,6 +169,31 @@ def _smoothing_variance_gain(smooth_sigma_px):
     delta = np.zeros((2 * m + 1, 2 * m + 1))
     delta[m, m] = 1.0
     return float(np.sum(_smooth(delta, smooth_sigma_px) ** 2))
+
+
+@functools.lru_cache(maxsize=16)
+def _gradient_noise_gain(smooth_sigma_px):
+    """White-noise variance gain of the B-spline x gradient at the nodes (after smoothing);
+    the y gradient has the same by symmetry."""
+    def grad(a):
+        coef = ndimage.spline_filter(_smooth(a, smooth_sigma_px), order=3, mode="mirror")
+        return _spline_gradients(coef)[0]
+    return filter_noise_gain(grad)
+
+
+def _noise_variances(noise_sigma, ref, cur):
+    """(s_ref², s_cur²) from the ``noise_sigma`` argument of :func:`icgn_refine`."""
+    if noise_sigma is None:
+        return (image_noise_sigma(ref) ** 2, image_noise_sigma(cur) ** 2)
+    if isinstance(noise_sigma, str):
+        if noise_sigma != "residual":
+            raise SemlabError(f"noise_sigma must be None, a number, a pair or 'residual', "
+                              f"got {noise_sigma!r}")
+        return (np.nan, np.nan)
+    v = np.broadcast_to(np.asarray(noise_sigma, dtype=np.float64), (2,))
+    if not np.all(np.isfinite(v) & (v >= 0)):
+        raise SemlabError(f"noise_sigma must be finite and >= 0, got {noise_sigma!r}")
+    return (float(v[0]) ** 2, float(v[1]) ** 2)
 
 
 def prefilter_image(img, smooth_sigma_px=0.0):
@@ -389,7 +427,7 @@ def _spline_gradients(coef):
 def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affine",
                 max_iter=30, tol_px=1e-4, init_warp=None, *, smooth_sigma_px=0.0,
                 subset_offsets=None, ref_prefiltered=None, cur_prefiltered=None,
-                progress=False):
+                noise_sigma=None, progress=False):
     """Sub-pixel subset matching by inverse-compositional Gauss–Newton with ZNSSD.
 
     For each point, the ``(2h+1)²`` subset of ``ref_img`` centred on the pixel nearest to
@@ -442,6 +480,12 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         B-spline coefficients from :func:`prefilter_image` (with the same
         ``smooth_sigma_px``), to save the prefilter when the same image is matched many
         times.
+    noise_sigma : None, float, (σ_ref, σ_cur) or "residual"
+        Standard deviation of the white noise of the (unsmoothed) images, in their grey
+        units, for ``sigma_px``. None (default) measures it from each image
+        (:func:`semlab.noise.image_noise_sigma`); give the values to reuse them when the
+        same images are matched many times. ``"residual"`` takes each subset's own
+        residual variance instead (no measurement; it also counts model misfit).
     progress : bool
         Show a tqdm bar over chunks of subsets.
 
@@ -495,6 +539,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         grad0 = iw[:, [1, 2, 4, 5]].copy()
         grad0[~np.all(np.isfinite(grad0), 1)] = 0.0
 
+    noise_var = _noise_variances(noise_sigma, ref, cur)
     ref = _smooth(ref, smooth_sigma_px)
     if cur_prefiltered is None:
         cur = _smooth(cur, smooth_sigma_px)
@@ -510,6 +555,9 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         if rcoef.shape != ref.shape:
             raise SemlabError("ref_prefiltered must have the shape of ref_img")
     rgx, rgy = _spline_gradients(rcoef)
+    kgx = kgy = None
+    if smooth_sigma_px and np.isfinite(noise_var[0]):
+        kgx, kgy = (_smooth(g, smooth_sigma_px).ravel() for g in (rgx, rgy))
 
     pts = np.full((n, 2), np.nan)
     wout = np.full((n, 6), np.nan)
@@ -517,6 +565,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     conv = np.zeros(n, bool)
     nit = np.zeros(n, int)
     sig = np.full((n, 2), np.nan)
+    rres = np.full(n, np.nan)
     reason = np.full(n, NAN_INPUT, dtype=object)
 
     finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
@@ -537,12 +586,14 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     roff = (xi[1] * ref.shape[1] + xi[0]).astype(np.intp)
     ctx = dict(ref_flat=np.ascontiguousarray(ref).ravel(), rgx_flat=rgx.ravel(),
                rgy_flat=rgy.ravel(), ref_w=ref.shape[1], roff=roff,
+               kgx_flat=kgx, kgy_flat=kgy,
                cur_shape=ccoef.shape, h=h, xi=xi, ext=ext,
                square=subset_offsets is None, cpad=cpad,
                table=_pair_table(cpad),
                affine=(warp == "affine"),
                max_iter=max_iter, tol=float(tol_px),
-               noise_gain=_smoothing_variance_gain(smooth_sigma_px))
+               noise_gain=_smoothing_variance_gain(smooth_sigma_px),
+               noise_var=noise_var, grad_gain=_gradient_noise_gain(smooth_sigma_px))
     chunk = max(32, _CHUNK_PIX // xi.shape[1])                # subsets per chunk
     chunks = [idx[i:i + chunk] for i in range(0, len(idx), chunk)]
 
@@ -554,15 +605,16 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
             results = ex.map(run, chunks)
             results = _maybe_tqdm(results, len(chunks), progress)
             for ii, r in results:
-                _store(ii, r, pts, wout, zncc, conv, nit, sig, reason)
+                _store(ii, r, pts, wout, zncc, conv, nit, sig, reason, rres)
     else:
         for ii in _maybe_tqdm(chunks, len(chunks), progress):
-            _store(ii, run(ii)[1], pts, wout, zncc, conv, nit, sig, reason)
+            _store(ii, run(ii)[1], pts, wout, zncc, conv, nit, sig, reason, rres)
 
     reason = np.array([str(r) for r in reason], dtype=object).astype(str) if n else \
         np.zeros(0, dtype="<U1")
     return SubsetResult(pts=pts, warp=wout, zncc=zncc, converged=conv, n_iter=nit,
-                        sigma_px=sig, reason=reason)
+                        sigma_px=sig, reason=reason, residual_ratio=rres,
+                        noise_sigma=np.sqrt(np.array(noise_var)))
 
 
 def _maybe_tqdm(it, total, progress):
@@ -572,10 +624,11 @@ def _maybe_tqdm(it, total, progress):
     return tqdm(it, total=total, desc="IC-GN subsets", unit="chunk")
 
 
-def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason):
-    p, w, z, c, k, s, why = r
+def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason, rres):
+    p, w, z, c, k, s, why, rr = r
     pts[ii], wout[ii], zncc[ii], conv[ii], nit[ii], sig[ii] = p, w, z, c, k, s
     reason[ii] = why
+    rres[ii] = rr
 
 
 def _bspline_weights(f):
@@ -793,6 +846,12 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
         return out
     Hxx, Hxy, Hyy = sym(fx * fx), sym(fx * fy), sym(fy * fy)
     Hs = np.concatenate([np.concatenate([Hxx, Hxy], 2), np.concatenate([Hxy, Hyy], 2)], 1)
+    if ctx["kgx_flat"] is None:
+        Hk = Hs
+    else:   # the noise of smoothed images reaches the estimate through K J (see below)
+        kx, ky = ctx["kgx_flat"].take(ridx), ctx["kgy_flat"].take(ridx)
+        Kxx, Kxy, Kyy = sym(kx * kx), sym(kx * ky), sym(ky * ky)
+        Hk = np.concatenate([np.concatenate([Kxx, Kxy], 2), np.concatenate([Kxy, Kyy], 2)], 1)
     # Texture test: relative conditioning of the (scaled) Hessian.
     scale = np.sqrt(np.einsum("nii->ni", Hs)) + 1e-300
     Hn = Hs / scale[:, :, None] / scale[:, None, :]
@@ -821,6 +880,7 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
     nit = np.zeros(n, int)
     zn = np.full(n, -1.0)
     rvar = np.full(n, np.nan)
+    rat = np.full(n, np.nan)
     eye = np.eye(2)
 
     # Working copies restricted to the active subsets (compressed when the set shrinks).
@@ -892,6 +952,7 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
             a, g, dg, gbar, cen = a[keep], g[keep], dg[keep], gbar[keep], cen[keep]
             m = len(act)
         ratio = w_df / dg
+        rat[act] = ratio
         fg = np.einsum("np,np->n", w_fz, g)
         zn[act] = fg / (w_df * dg)
         # residual r = fz - ratio g: |r|^2 = df^2 - 2 ratio fg + ratio^2 dg^2
@@ -949,8 +1010,9 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
     w[:, 4] = A[:, 1, 0]
     w[:, 5] = A[:, 1, 1] - 1
     w[~ok] = np.nan
-    # Covariance of the parameters: rvar * H^-1 (reference frame, f units). The position of
-    # the sub-pixel reference point depends on (u, v) and on the gradients times offset o.
+    # Covariance of the parameters (reference frame, f units): see _covariance. The
+    # position of the sub-pixel reference point depends on (u, v) and on the gradients
+    # times offset o.
     e = np.zeros((n, 2, 6))
     e[:, 0, 0] = 1
     e[:, 0, 1] = o[:, 0]
@@ -959,11 +1021,50 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
     e[:, 1, 4] = o[:, 0]
     e[:, 1, 5] = o[:, 1]
     e = e[:, :, cols_p]
-    # With Gaussian pre-smoothing the residual variance understates the noise of the
-    # unsmoothed images by the kernel's Σ w²; dividing by it is exact for textures well
-    # inside the kernel's pass band and conservative otherwise.
-    var = np.einsum("nai,nij,naj->na", e, Hinv, e) * (rvar / ctx["noise_gain"])[:, None]
+    var, rr = _covariance(ctx, Hs, Hk, Hinv, B, rvar, rat, e)
     sig = np.where(ok[:, None], np.sqrt(np.maximum(var, 0)), np.nan)
     zn = np.where(np.isfinite(zn) & (status != 2) & (status != 3) & (status != 4),
                   np.clip(zn, -1, 1), -1.0)
-    return pts, w, zn, ok, nit, sig, why
+    rr = np.where(ok, rr, np.nan)
+    return pts, w, zn, ok, nit, sig, why, rr
+
+
+def _covariance(ctx, Hs, Hk, Hinv, B, rvar, ratio, e):
+    """Variance (n, 2) of the matched position and the residual ratio (n,).
+
+    With measured noise variances ``s_f²`` and ``s_g²`` of the reference and current
+    images, the Hessian of the reference subset ``H = Σ JᵀJ`` holds the texture's
+    ``H0`` plus the noise's gradient energy ``Hn = s_f² γ Σ B Bᵀ`` (``γ`` the white-noise
+    gain of the B-spline gradient, after pre-smoothing). At convergence ``Jᵀ r = 0``
+    gives ``δp = (Jᵀ J0)⁻¹ Jᵀ n``, so ``Cov(δp) = s² H0⁻¹ H H0⁻¹`` with
+    ``s² = s_f² + (Δf/Δg)² s_g²``: for noise-free gradients this is ``2σ² H⁻¹``, the
+    Cramér–Rao bound (Pan et al. 2008, Opt. Express 16(10), "Study on subset size
+    selection in digital image correlation for speckle patterns", eq. 11), and it grows
+    where the texture hardly stands above the noise. With Gaussian pre-smoothing ``K``
+    the noise reaching ``Jᵀ n`` is ``(K J)ᵀ n`` of the unsmoothed noise, so the middle
+    ``H`` becomes ``Hk = Σ (K J)ᵀ (K J)`` (``K J`` sampled on the subset). With
+    ``noise_sigma="residual"`` the subset's own residual variance (divided by the
+    kernel's ``Σ w²``) replaces ``s²`` in ``s² H⁻¹`` (the former estimate).
+    """
+    sf2, sg2 = ctx["noise_var"]
+    gain = ctx["noise_gain"]
+    if not np.isfinite(sf2):
+        var = np.einsum("nai,nij,naj->na", e, Hinv, e) * (rvar / gain)[:, None]
+        return var, np.full(len(rvar), np.nan)
+    nb = B.shape[1]
+    Hn = np.zeros((2 * nb, 2 * nb))
+    BtB = B.T @ B
+    Hn[:nb, :nb] = BtB
+    Hn[nb:, nb:] = BtB
+    H0 = Hs - (sf2 * ctx["grad_gain"]) * Hn
+    good = np.all(np.isfinite(Hs), axis=(1, 2)) & (np.einsum("nii->n", Hinv) > 0)
+    good[good] &= np.linalg.eigvalsh(H0[good])[:, 0] > 0
+    H0i = np.zeros_like(Hs)
+    H0i[good] = np.linalg.inv(H0[good])
+    C = np.matmul(np.matmul(H0i, Hk), H0i)
+    s2 = sf2 + np.nan_to_num(ratio) ** 2 * sg2
+    var = np.einsum("nai,nij,naj->na", e, C, e) * s2[:, None]
+    var[~good] = np.inf
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rr = (rvar / gain) / s2
+    return var, rr

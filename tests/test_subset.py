@@ -358,3 +358,64 @@ def test_dic_challenge_sample5():
     assert np.all(np.abs(u.mean(0) - 0.1) < 0.002)
     rms = np.sqrt(np.mean((u - 0.1) ** 2))
     assert rms <= 0.005
+
+
+# ------------------------------------------------------- predicted error from the covariance
+@pytest.mark.parametrize("noise,h,smooth", [(3.0, 10, 0.8), (6.0, 8, 0.8), (1.5, 8, 0.0)])
+def test_predicted_sigma_matches_empirical_error(noise, h, smooth):
+    """sigma_px (Gauss-Newton covariance, noise measured from the images) is within 20 %
+    of the RMS error over many noise draws of a known sub-pixel shift, and the error bars
+    cover like a Gaussian's."""
+    T = _texture(0, kmax=0.5)
+    shape, shift = (120, 150), (0.3, -0.2)
+    ref0, cur0 = _render(T, shape), _render(T, shape, t=shift)
+    pts = _grid(shape, 20, 7)
+    rng = np.random.default_rng(7)
+    err, sig = [], []
+    for _ in range(8):
+        ref = ref0 + rng.normal(0, noise, shape)
+        cur = cur0 + rng.normal(0, noise, shape)
+        # low SNR: the noisy reference gradients slow IC-GN's convergence down
+        r = icgn_refine(ref, cur, pts, np.rint(pts + shift), half_window=h,
+                        smooth_sigma_px=smooth, max_iter=100)
+        assert r.converged.mean() > 0.95
+        assert np.allclose(r.noise_sigma, noise, rtol=0.05)      # measured, not assumed
+        ok = r.converged
+        err.append(r.pts[ok] - (pts[ok] + shift))
+        sig.append(r.sigma_px[ok])
+    err, sig = np.concatenate(err), np.concatenate(sig)
+    assert np.all(np.isfinite(sig))
+    ratio = np.sqrt(np.mean(err ** 2, 0)) / np.sqrt(np.mean(sig ** 2, 0))
+    assert np.all(np.abs(ratio - 1) < 0.2), ratio
+    z = np.abs(err / sig)
+    assert 0.6 < np.mean(z < 1) < 0.78 and np.mean(z < 2) > 0.92
+
+
+def test_predicted_sigma_grows_with_noise_and_residual_mode():
+    T = _texture(1, kmax=0.5)
+    shape = (90, 100)
+    ref0, cur0 = _render(T, shape), _render(T, shape, t=(0.4, 0.1))
+    pts = _grid(shape, 20, 10)
+    rng = np.random.default_rng(0)
+    ref, cur = ref0 + rng.normal(0, 2, shape), cur0 + rng.normal(0, 2, shape)
+    a = icgn_refine(ref, cur, pts, pts, half_window=10)
+    b = icgn_refine(ref, cur, pts, pts, half_window=10, noise_sigma=4.0)
+    c = icgn_refine(ref, cur, pts, pts, half_window=10, noise_sigma="residual")
+    assert np.all(b.sigma_px > 1.9 * a.sigma_px)      # twice the noise, twice the error
+    assert np.allclose(np.median(c.sigma_px / a.sigma_px), 1, atol=0.25)
+    assert np.all(np.isnan(c.residual_ratio)) and np.all(np.isnan(c.noise_sigma))
+    assert 0.6 < np.median(a.residual_ratio) < 1.3
+    with pytest.raises(SemlabError, match="noise_sigma"):
+        icgn_refine(ref, cur, pts, pts, noise_sigma="guess")
+    with pytest.raises(SemlabError, match="noise_sigma"):
+        icgn_refine(ref, cur, pts, pts, noise_sigma=-1.0)
+
+
+def test_sigma_infinite_where_texture_is_below_noise():
+    rng = np.random.default_rng(3)
+    T = _texture(2, kmax=0.5)
+    shape = (80, 80)
+    ref = 100 + 0.02 * (_render(T, shape) - 100) + rng.normal(0, 3, shape)
+    cur = ref + rng.normal(0, 3, shape)
+    r = icgn_refine(ref, cur, [[40.0, 40.0]], [[40.0, 40.0]], half_window=6)
+    assert r.converged.all() is False or np.all(~np.isfinite(r.sigma_px) | (r.sigma_px > 0.3))

@@ -1,0 +1,36 @@
+"""Tests of semlab.noise: noise measured from images."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab.errors import ImageError
+from semlab.noise import filter_noise_gain, image_noise_sigma
+
+
+@pytest.mark.parametrize("sigma", [1.0, 3.0, 6.0])
+def test_noise_of_textured_image(sigma):
+    rng = np.random.default_rng(0)
+    tex = ndimage.gaussian_filter(rng.normal(0, 40, (300, 300)), 2.0) * 4   # std ~ 22
+    assert tex.std() > 3.5 * sigma
+    img = 100 + tex + rng.normal(0, sigma, tex.shape)
+    assert image_noise_sigma(img) == pytest.approx(sigma, rel=0.08)
+    # outliers (hot pixels) and a few edges do not inflate it
+    img[rng.integers(0, 300, 200), rng.integers(0, 300, 200)] = 255
+    img[:, 150:] += 80
+    assert image_noise_sigma(img) == pytest.approx(sigma, rel=0.12)
+    m = np.zeros(img.shape, bool)
+    m[10:100, 10:100] = True
+    assert image_noise_sigma(img, mask=m) == pytest.approx(sigma, rel=0.15)
+
+
+def test_noise_errors_and_gain():
+    assert image_noise_sigma(np.full((20, 20), 3.0)) == 0.0
+    with pytest.raises(ImageError):
+        image_noise_sigma(np.zeros(5))
+    with pytest.raises(ImageError):
+        image_noise_sigma(np.full((5, 5), np.nan))
+    with pytest.raises(ImageError, match="mask"):
+        image_noise_sigma(np.zeros((5, 5)), mask=np.ones((4, 4), bool))
+    assert filter_noise_gain(lambda a: a) == 1.0
+    assert filter_noise_gain(lambda a: ndimage.uniform_filter(a, 3)) == pytest.approx(1 / 9)
