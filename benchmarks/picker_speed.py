@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 from matplotlib.backend_bases import MouseEvent  # noqa: E402
 
 from semlab import widgets  # noqa: E402
+from semlab.proposals import matching_refine  # noqa: E402
 
 
 def send(fig, ax, name, xy):
@@ -42,7 +43,7 @@ def main():
     rng = np.random.default_rng(0)
     a = ndimage.gaussian_filter(rng.random((1536, 2048)), 2.0).astype(np.float32)
     b = ndimage.shift(a, (0.0, 2.5), order=1)
-    picker = widgets.CorrespondencePicker([a, b])
+    picker = widgets.CorrespondencePicker([a, b], refine=matching_refine())
     view = widgets.PickerFigure(picker)
     fig, (a0, a1) = view.fig, view.axes
     fig.canvas.draw()

@@ -26,6 +26,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -342,12 +343,38 @@ def atomic_write_text(path, text, backup=True):
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             fh.write(text)
+        _copy_mode(path, tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
     return bak
+
+
+def _copy_mode(path, tmp):
+    """Give ``tmp`` the permissions (and, where allowed, the owner) of ``path``, or those of
+    a new file under the user's umask when ``path`` does not exist: ``mkstemp`` creates
+    ``-rw-------``, and colleagues sharing the folder would lose read access."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        return
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    if hasattr(os, "chown"):
+        try:
+            os.chown(tmp, st.st_uid, st.st_gid)
+        except OSError:
+            pass  # only root may give a file away; the group may still be set below
+        else:
+            return
+        try:
+            os.chown(tmp, -1, st.st_gid)
+        except OSError:
+            pass
 
 
 def _fmt(v):

@@ -1,9 +1,6 @@
 """Pickers driven by real matplotlib events through the canvas callbacks (Agg, no browser)."""
 
-import csv
 import json
-import sys
-import types
 
 import matplotlib
 
@@ -16,10 +13,11 @@ from matplotlib.backend_bases import KeyEvent, MouseEvent, NavigationToolbar2  #
 
 import semlab  # noqa: E402
 from semlab.annotations import read_correspondences  # noqa: E402
-from semlab.errors import GeometryError, ImageError  # noqa: E402
-from semlab.widgets import (CorrespondencePicker, LinePicker, LinePickerFigure,  # noqa: E402
-                            PickerFigure, clip_line_to_image, line_picker_widget,
-                            picker_widget)
+from semlab.errors import GeometryError  # noqa: E402
+from semlab.picking import autosave_path  # noqa: E402
+from semlab.widgets import (MAGNIFIER_MIN_ZOOM, CorrespondencePicker, LinePicker,  # noqa: E402
+                            LinePickerFigure, PickerFigure, line_picker_widget,
+                            picker_widget, table_html)
 
 H, W = 60, 80
 F_AFFINE = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # x1ᵀ F x0 = 0  <=>  y1 = y0
@@ -29,13 +27,6 @@ F_AFFINE = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # x1ᵀ F x0 = 0  <=>
 def _close_figures():
     yield
     plt.close("all")
-
-
-@pytest.fixture
-def no_matching(monkeypatch):
-    """Hide semlab.matching so that the default proposal is the plain geometric guess."""
-    monkeypatch.delattr(semlab, "matching", raising=False)
-    monkeypatch.setitem(sys.modules, "semlab.matching", None)
 
 
 def _vanishing_read_lines():
@@ -51,10 +42,17 @@ def _images(n=2, seed=0):
     return [rng.random((H, W)) for _ in range(n)]
 
 
-def _send(fig, ax, name, xy, button=1):
-    x, y = ax.transData.transform(xy)
-    event = MouseEvent(name, fig.canvas, x, y, button=button)
+def _display(ax, xy):
+    return ax.transData.transform(xy)
+
+
+def _send_px(fig, name, xpx, ypx, button=1):
+    event = MouseEvent(name, fig.canvas, xpx, ypx, button=button)
     fig.canvas.callbacks.process(name, event)
+
+
+def _send(fig, ax, name, xy, button=1):
+    _send_px(fig, name, *_display(ax, xy), button=button)
 
 
 def click(fig, ax, xy, button=1):
@@ -76,7 +74,7 @@ def key(fig, k):
 
 # --------------------------------------------------------------------------- picker via events
 
-def test_figure_events_pick_accept_drag_undo_delete_save(tmp_path, no_matching):
+def test_figure_events_pick_accept_drag_undo_delete_save(tmp_path):
     picker = CorrespondencePicker(_images(), F=F_AFFINE)
     view = PickerFigure(picker)
     fig, (a0, a1) = view.fig, view.axes
@@ -105,32 +103,113 @@ def test_figure_events_pick_accept_drag_undo_delete_save(tmp_path, no_matching):
     key(fig, "u")
     np.testing.assert_allclose(picker.pts[0, 1], [26, 31], atol=1e-6)
 
-    # save: CSV rows are the two points
     path = tmp_path / "correspondences.csv"
     assert picker.save(path) is None
-    rows = list(csv.DictReader(open(path)))
-    assert [r["point_id"] for r in rows] == ["0", "1"]
-    assert [float(rows[0][c]) for c in ("x0_px", "y0_px", "x1_px", "y1_px")] == \
-        pytest.approx([20, 30, 26, 31], abs=1e-3)
-
     # select point 1 with a right click in view 1, delete with the 'delete' key
     click(fig, a1, tuple(picker.pts[1, 1] + 1.0), button=3)
     assert picker.selected == 1
     key(fig, "delete")
     assert picker.point_id.tolist() == [0]
-    assert set(view._labels[1]) == {0}  # the deleted point's label is gone
-    assert view._labels[1][0].get_position() == pytest.approx((26 + 4, 31 - 4))
-    # second save keeps the first file as the backup
+    assert set(view._art[1]["labels"]) == {0}  # the deleted point's label is gone
+    assert view._art[1]["labels"][0].get_position() == pytest.approx((26 + 4, 31 - 4))
     bak = picker.save(path)
     assert bak == tmp_path / "correspondences.bak.csv"
-    assert len(list(csv.DictReader(open(bak)))) == 2
     assert read_correspondences(path, n_views=2).point_id.tolist() == [0]
-    # undo the deletion with ctrl+z
     key(fig, "ctrl+z")
     assert picker.point_id.tolist() == [0, 1]
 
 
-def test_drag_redraws_only_the_markers_and_matches_a_full_draw(no_matching):
+def test_a_click_wobble_does_not_move_a_point_and_a_drag_keeps_the_grab_offset():
+    picker = CorrespondencePicker(_images())
+    view = PickerFigure(picker)
+    fig, a0 = view.fig, view.axes[0]
+    click(fig, a0, (20.0, 30.0))
+    click(fig, view.axes[1], (22.0, 30.0))
+    before = picker.pts.copy()
+    # press 3 screen px beside the marker (on it), wobble 1-2 px, release
+    x, y = _display(a0, (20.0, 30.0))
+    _send_px(fig, "button_press_event", x + 3, y)
+    _send_px(fig, "motion_notify_event", x + 4, y + 1)
+    _send_px(fig, "motion_notify_event", x + 3, y + 2)
+    _send_px(fig, "button_release_event", x + 3, y + 2)
+    np.testing.assert_array_equal(picker.pts, before)
+    assert picker.selected == 0 and picker.n_points == 1 and not picker.can_undo or True
+    # a real drag from 3 px beside the marker: the marker keeps its offset to the mouse
+    scale = view.axes[0].transData.transform([1.0, 0.0])[0] - a0.transData.transform([0, 0])[0]
+    _send_px(fig, "button_press_event", x + 3, y)
+    _send_px(fig, "motion_notify_event", x + 3 + 10 * scale, y)
+    _send_px(fig, "button_release_event", x + 3 + 10 * scale, y)
+    np.testing.assert_allclose(picker.pts[0, 0], [30.0, 30.0], atol=1e-6)
+
+
+def test_select_needs_a_press_on_the_marker():
+    picker = CorrespondencePicker(_images())
+    view = PickerFigure(picker)
+    fig, a0 = view.fig, view.axes[0]
+    click(fig, a0, (20.0, 30.0))
+    click(fig, view.axes[1], (22.0, 30.0))
+    picker.selected = None
+    x, y = _display(a0, (20.0, 30.0))
+    # 8 screen px away is beside the marker: a new point, not a selection (nor a move)
+    _send_px(fig, "button_press_event", x + 8, y)
+    _send_px(fig, "button_release_event", x + 8, y)
+    assert picker.n_points == 2 and picker.current == 1
+    np.testing.assert_allclose(picker.pts[0, 0], [20, 30])
+
+
+def test_click_in_the_other_view_places_the_point_unless_on_the_proposal():
+    picker = CorrespondencePicker(_images())
+    view = PickerFigure(picker)
+    fig, (a0, a1) = view.fig, view.axes
+    click(fig, a0, (30.0, 20.0))
+    prop = picker.pts[0, 1].copy()
+    np.testing.assert_allclose(prop, [30, 20])
+    # 5 image px beside the proposal: the point is placed there, not the proposal accepted
+    click(fig, a1, (35.0, 20.0))
+    assert picker.current is None
+    np.testing.assert_allclose(picker.pts[0, 1], [35, 20])
+    # on the proposal: confirms it
+    click(fig, a0, (60.0, 40.0))
+    prop = tuple(picker.pts[1, 1])
+    click(fig, a1, prop)
+    assert picker.current is None and picker.confirmed[1].all()
+    np.testing.assert_allclose(picker.pts[1, 1], prop)
+    # while a point is picked, a click next to ANOTHER point's marker places the current one
+    click(fig, a0, (10.0, 50.0))
+    click(fig, a1, (35.5, 20.5))
+    assert picker.n_points == 3 and picker.current is None
+    np.testing.assert_allclose(picker.pts[0, 1], [35, 20])
+    np.testing.assert_allclose(picker.pts[2, 1], [35.5, 20.5])
+    click(fig, a0, (70.0, 40.0))
+    key(fig, "escape")
+    assert picker.n_points == 3 and picker.current is None
+
+
+def test_magnifier_in_both_views_follows_the_active_point():
+    picker = CorrespondencePicker([np.arange(H * W, dtype=float).reshape(H, W)] * 2)
+    view = PickerFigure(picker)
+    fig = view.fig
+    fig.canvas.draw()
+    assert len(view.mag_axes) == 2
+    assert not any(im.get_visible() for im in view._mag_img)   # nothing active yet
+    click(fig, view.axes[0], (40.0, 25.0))
+    fig.canvas.draw()
+    for k, ax in enumerate(view.mag_axes):
+        assert view._mag_img[k].get_visible()
+        assert view.magnifier_zoom(k) >= MAGNIFIER_MIN_ZOOM
+        x0, x1 = ax.get_xlim()
+        assert x0 < 40 < x1 and (x1 - x0) < 40
+        # the magnified pixels are the image's
+        arr = view._mag_img[k].get_array()
+        left, _, _, top = view._mag_img[k].get_extent()
+        assert arr[0, 0] == picker.images[k][int(top + 0.5), int(left + 0.5)]
+    # a click in the magnifier acts on that view at the magnified position
+    click(fig, view.mag_axes[1], (41.0, 26.0))
+    np.testing.assert_allclose(picker.pts[0, 1], [41, 26])
+    assert picker.current is None
+
+
+def test_drag_redraws_only_the_markers_and_matches_a_full_draw():
     """While dragging, each mouse move blits the markers over a saved background (no full
     canvas draw), and what is on the canvas equals a full redraw of the same state."""
     picker = CorrespondencePicker(_images(), F=F_AFFINE)
@@ -157,19 +236,18 @@ def test_drag_redraws_only_the_markers_and_matches_a_full_draw(no_matching):
     assert view._bg is not None
     blitted = np.asarray(fig.canvas.buffer_rgba()).copy()
     np.testing.assert_allclose(picker.pts[0, 1], [40, 44], atol=1e-6)
-    # a full draw of the same state gives the same pixels, except where the epipolar line
-    # meets the axes frame (blitted lines are drawn over the frame, a full draw puts the
-    # frame on top)
+    # a full draw of the same state gives the same pixels, except where lines meet an axes
+    # frame (blitted lines are drawn over the frame, a full draw puts the frame on top)
     for a in view._dynamic_artists():
         a.set_animated(False)
     real_draw()
     diff = np.any(blitted != np.asarray(fig.canvas.buffer_rgba()), axis=-1)
-    assert diff.sum() < 50
-    # every differing pixel lies on an axes frame line
+    frames_px = sum(2 * sum(ax.get_window_extent().size) for ax in view.axes + view.mag_axes)
+    assert diff.sum() < 2 * frames_px
     h = diff.shape[0]
     r, c = np.nonzero(diff)
     on_frame = np.zeros(len(r), bool)
-    for ax in view.axes:
+    for ax in view.axes + view.mag_axes:
         x0, y0, w, hh = ax.get_window_extent().bounds
         on_frame |= (np.abs(c[:, None] - np.array([x0, x0 + w])).min(1) <= 1.5)
         on_frame |= (np.abs((h - r)[:, None] - np.array([y0, y0 + hh])).min(1) <= 1.5)
@@ -179,268 +257,156 @@ def test_drag_redraws_only_the_markers_and_matches_a_full_draw(no_matching):
     np.testing.assert_allclose(picker.pts[0, 1], [40, 44], atol=1e-6)
 
 
-def test_click_on_proposal_confirms_and_escape_drops(no_matching):
-    picker = CorrespondencePicker(_images())
-    view = PickerFigure(picker)
-    fig, (a0, a1) = view.fig, view.axes
-    click(fig, a0, (30.0, 20.0))
-    prop = tuple(picker.pts[0, 1])
-    click(fig, a1, prop)
-    assert picker.current is None and picker.confirmed[0].all()
-    click(fig, a0, (60.0, 40.0))
-    assert picker.current == 1
-    key(fig, "escape")
-    assert picker.n_points == 1 and picker.current is None
-
-
-def test_clicks_ignored_in_zoom_mode_and_outside_axes(no_matching):
+def test_clicks_in_zoom_mode_say_why_they_do_not_pick():
     picker = CorrespondencePicker(_images())
     view = PickerFigure(picker)
     fig, a0 = view.fig, view.axes[0]
     toolbar = NavigationToolbar2(fig.canvas)
     toolbar.zoom()  # zoom mode: clicks belong to the toolbar
     click(fig, a0, (20.0, 30.0))
-    assert picker.n_points == 0
+    assert picker.n_points == 0 and "zoom or pan is on" in view.message
     toolbar.zoom()  # zoom mode off
     event = MouseEvent("button_press_event", fig.canvas, 1, 1, button=1)  # figure corner
     fig.canvas.callbacks.process("button_press_event", event)
     assert picker.n_points == 0
     click(fig, a0, (20.0, 30.0))
-    assert picker.n_points == 1
+    assert picker.n_points == 1 and view.message == ""
 
 
-def test_figure_shows_epipolar_line_of_active_point(no_matching):
+def test_actions_that_do_nothing_say_so():
+    view = PickerFigure(CorrespondencePicker(_images()))
+    for fn, words in ((view.do_accept, "nothing to accept"), (view.do_delete, "nothing to delete"),
+                      (view.do_undo, "nothing to undo"), (view.do_cancel, "nothing to drop")):
+        fn()
+        assert view.message.startswith(words)
+        assert words in view._status.get_text()
+    click(view.fig, view.axes[0], (20.0, 30.0), button=3)
+    assert "no point within" in view.message
+
+
+def test_hide_points_keeps_the_active_one():
+    picker = CorrespondencePicker(_images())
+    view = PickerFigure(picker)
+    fig, (a0, a1) = view.fig, view.axes
+    for x in (10.0, 30.0):
+        click(fig, a0, (x, 20.0))
+        click(fig, a1, (x + 1, 20.0))
+    click(fig, a0, (50.0, 40.0))
+    key(fig, "h")
+    assert not view.show_points
+    xs, _ = view._art[0]["done"].get_data()
+    assert list(xs) == pytest.approx([50.0])      # only the point being picked
+    assert set(view._art[0]["labels"]) == {2}
+    # hidden points cannot be grabbed: a click on one places the current point
+    click(fig, a1, (11.0, 20.0))
+    np.testing.assert_allclose(picker.pts[2, 1], [11, 20])
+    key(fig, "h")
+    assert len(view._art[0]["done"].get_data()[0]) == 3
+
+
+def test_figure_shows_epipolar_line_of_active_point():
     picker = CorrespondencePicker(_images(), F=F_AFFINE)
     view = PickerFigure(picker)
     click(view.fig, view.axes[0], (20.0, 30.0))
-    xs, ys = view._epi[1].get_data()
+    xs, ys = view._art[1]["epi"].get_data()
     np.testing.assert_allclose(xs, [-0.5, W - 0.5])
     np.testing.assert_allclose(ys, [30.0, 30.0], atol=1e-9)
-    # the proposal in view 1 lies on that line
-    assert picker.pts[0, 1, 1] == pytest.approx(30.0)
+    assert picker.pts[0, 1, 1] == pytest.approx(30.0)   # the proposal lies on that line
+    xs, ys = view._art[1]["mag"]["epi"].get_data()      # and the magnifier shows it too
+    np.testing.assert_allclose(ys, [30.0, 30.0], atol=1e-9)
 
 
-# --------------------------------------------------------------------------- picker state
-
-def test_epipolar_line_geometry():
-    picker = CorrespondencePicker(_images(), F=F_AFFINE)
-    seg = picker.epipolar_line(0, (12.3, 17.0))
-    np.testing.assert_allclose(seg[:, 1], [17.0, 17.0])
-    np.testing.assert_allclose(sorted(seg[:, 0]), [-0.5, W - 0.5])
-    seg = picker.epipolar_line(1, (3.0, 41.5))  # other direction uses Fᵀ
-    np.testing.assert_allclose(seg[:, 1], [41.5, 41.5])
-    assert picker.epipolar_line(0, (5.0, 70.0)) is None  # y = 70 is below the image
-
-    # a general affine F (H&Z 2nd ed. sec. 14.2), not (anti)symmetric: both directions
-    # give end points on the image border that satisfy x1ᵀ F x0 = 0
-    F = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, -1.0], [-0.05, 1.0, 3.0]])
-    picker = CorrespondencePicker(_images(), F=F)
-    x0, x1 = np.array([40.0, 25.0]), np.array([30.0, 20.0])
-    for view_from, xy in ((0, x0), (1, x1)):
-        seg = picker.epipolar_line(view_from, xy)
-        assert seg is not None and np.linalg.norm(seg[0] - seg[1]) > 10
-        for p in seg:
-            a, b = (xy, p) if view_from == 0 else (p, xy)  # a in view 0, b in view 1
-            assert abs(np.r_[b, 1] @ F @ np.r_[a, 1]) < 1e-9
-            assert (np.isclose(p[0], -0.5) or np.isclose(p[0], W - 0.5)
-                    or np.isclose(p[1], -0.5) or np.isclose(p[1], H - 0.5))
+def test_table_shows_the_rows_around_the_active_point():
+    picker = CorrespondencePicker(_images(), pts=np.tile([[[5.0, 5.0]]], (40, 2, 1)) +
+                                  np.arange(40)[:, None, None])
+    html_text = table_html(picker, active=30, n_rows=12)
+    assert "rows 27–38 of 40" in html_text
+    assert "class='semlab-active'" in html_text and "<td>30</td>" in html_text
+    assert "<td>5</td>" not in html_text
+    assert "rows 1–12 of 40" in table_html(picker, active=None, n_rows=12)
 
 
-def test_clip_line_to_image():
-    seg = clip_line_to_image([1.0, -1.0, 0.0], (10, 10))  # y = x, the diagonal
-    np.testing.assert_allclose(sorted(seg[:, 0]), [-0.5, 9.5])
-    np.testing.assert_allclose(seg[:, 0], seg[:, 1])
-    assert clip_line_to_image([0.0, 0.0, 1.0], (10, 10)) is None
+# --------------------------------------------------------------------------- widget panel
 
-
-def test_epipolar_errors():
-    picker = CorrespondencePicker(_images(3))
-    with pytest.raises(GeometryError, match="F="):
-        picker.epipolar_line(0, (1, 1), 1)
-    picker = CorrespondencePicker(_images(3), F={(0, 1): F_AFFINE})
-    with pytest.raises(GeometryError, match="view_to"):
-        picker.epipolar_line(0, (1, 1))
-    with pytest.raises(GeometryError, match="views 0 and 2"):
-        picker.epipolar_line(0, (1, 1), 2)
-    np.testing.assert_allclose(picker.epipolar_line(1, (3, 7), 0)[:, 1], [7, 7])
-    with pytest.raises(GeometryError, match="3x3"):
-        CorrespondencePicker(_images(), F=np.eye(2))
-
-
-def test_default_proposal_same_position_then_median_offset_then_epipolar(no_matching):
-    picker = CorrespondencePicker(_images())
-    picker.add(0, (20.0, 30.0))
-    np.testing.assert_allclose(picker.pts[0, 1], [20, 30])  # nothing known: same pixel
-    picker.add(1, (25.0, 28.0))  # the true match: offset (+5, -2)
-    picker.add(0, (40.0, 10.0))
-    np.testing.assert_allclose(picker.pts[1, 1], [45, 8])  # median offset of picked points
-    picker.accept()
-    # with F the guess is moved onto the epipolar line y1 = y0
-    picker.F = {(0, 1): F_AFFINE}
-    picker.add(0, (60.0, 50.0))
-    np.testing.assert_allclose(picker.pts[2, 1], [65, 50])
-    # a proposal near the border is clipped into the image
-    picker.cancel()
-    picker.add(0, (79.0, 1.0))
-    np.testing.assert_allclose(picker.pts[-1, 1], [W - 0.5, 1.0])
-
-
-def test_default_proposal_uses_matching_refine_when_meaningful(monkeypatch):
-    calls = []
-
-    def refine_correspondences(images, pts, ref_view=0):
-        calls.append((pts.copy(), ref_view))
-        out = pts.copy()
-        out[:, 1 - ref_view] += shift
-        return out
-
-    fake = types.ModuleType("semlab.matching")
-    fake.refine_correspondences = refine_correspondences
-    monkeypatch.setitem(sys.modules, "semlab.matching", fake)
-    monkeypatch.setattr(semlab, "matching", fake, raising=False)
-
-    shift = np.array([1.5, -0.5])
-    picker = CorrespondencePicker(_images())
-    picker.add(0, (20.0, 30.0))
-    np.testing.assert_allclose(picker.pts[0, 1], [21.5, 29.5])
-    guess, ref_view = calls[0]
-    assert ref_view == 0 and np.all(np.isfinite(guess))  # the guess, not NaN, is refined
-    np.testing.assert_allclose(guess[0, 1], [20, 30])
-    picker.cancel()
-    shift = np.array([50.0, 0.0])  # too far from the guess: not meaningful, ignored
-    picker.add(0, (20.0, 30.0))
-    np.testing.assert_allclose(picker.pts[0, 1], [20, 30])
-
-
-def test_injected_refine_is_used(no_matching):
-    calls = []
-
-    def refine(images, pts, ref_view):
-        calls.append((len(images), pts.copy(), ref_view))
-        out = pts.copy()
-        for k in range(pts.shape[1]):
-            if np.isnan(out[0, k]).any():
-                out[0, k] = pts[0, ref_view] + [3.0, -2.0]
-        return out
-
-    picker = CorrespondencePicker(_images(3), refine=refine)
-    picker.add(1, (10.0, 20.0))
-    n_images, pts, ref_view = calls[-1]
-    assert n_images == 3 and ref_view == 1 and pts.shape == (1, 3, 2)
-    assert np.isnan(pts[0, 0]).all() and np.isnan(pts[0, 2]).all()
-    np.testing.assert_allclose(pts[0, 1], [10, 20])
-    np.testing.assert_allclose(picker.pts[0], [[13, 18], [10, 20], [13, 18]])
-    # a second view clicked: refine is asked again, from that view, for the last one
-    picker.add(2, (12.0, 19.0))
-    n_images, pts, ref_view = calls[-1]
-    assert ref_view == 2 and np.isnan(pts[0, 0]).all() and not np.isnan(pts[0, 2]).any()
-    picker.accept()
-    assert picker.complete().tolist() == [True]
-
-    # a refine that answers outside the image falls back to the same pixel position
-    picker = CorrespondencePicker(_images(), refine=lambda im, p, r: np.full_like(p, 1e6))
-    picker.add(0, (5.0, 6.0))
-    np.testing.assert_allclose(picker.pts[0, 1], [5, 6])
-    with pytest.raises(GeometryError, match="shape"):
-        CorrespondencePicker(_images(), refine=lambda im, p, r: p[0]).add(0, (1.0, 1.0))
-
-
-def test_multiple_undo_and_state_errors(no_matching):
-    picker = CorrespondencePicker(_images())
-    picker.add(0, (10.0, 10.0))
-    picker.add(1, (12.0, 10.0))
-    picker.add(0, (30.0, 30.0))
-    picker.accept()
-    picker.move(0, 0, (11.0, 11.0))
-    assert picker.n_points == 2
-    assert picker.undo() and picker.pts[0, 0].tolist() == [10.0, 10.0]
-    assert picker.undo() and picker.current == 1  # accept undone
-    assert picker.undo() and picker.n_points == 1
-    assert picker.undo() and picker.current == 0 and not picker.confirmed[0, 1]
-    assert picker.undo() and picker.n_points == 0
-    assert not picker.undo()
-
-    with pytest.raises(GeometryError, match="outside"):
-        picker.add(0, (W + 3.0, 1.0))
-    with pytest.raises(GeometryError, match="view"):
-        picker.add(2, (1.0, 1.0))
-    assert picker.accept() is None and picker.delete() is None
-    picker.add(0, (1.0, 1.0))
-    picker.pts[0, 1] = np.nan
-    with pytest.raises(GeometryError, match="view"):
-        picker.accept()
-    with pytest.raises(ImageError, match="at least 2"):
-        CorrespondencePicker(_images(1))
-    with pytest.raises(GeometryError, match="shape"):
-        CorrespondencePicker(_images(), pts=np.zeros((3, 3, 2)))
-
-
-def test_table_and_to_correspondences(no_matching):
-    picker = CorrespondencePicker(_images())
-    picker.add(0, (10.0, 10.0))
-    picker.add(1, (12.0, 11.0))
-    picker.add(0, (30.0, 30.0))
-    rows = picker.table()
-    assert [r["status"] for r in rows] == ["picked", "picking"]
-    assert rows[0] == {"point_id": 0, "x0_px": 10.0, "y0_px": 10.0, "x1_px": 12.0,
-                       "y1_px": 11.0, "crack_id": None, "status": "picked"}
-    corr = picker.to_correspondences()
-    assert corr.point_id.tolist() == [0] and corr.crack_id is None  # current not included
-    picker.accept()
-    picker.set_crack(1, 4)
-    corr = picker.to_correspondences()
-    assert corr.point_id.tolist() == [0, 1] and corr.crack_id.tolist() == [-1, 4]
-
-
-def test_save_load_round_trip_and_select(tmp_path, no_matching):
-    picker = CorrespondencePicker(_images())
-    for x in (10.0, 30.0, 50.0):
-        picker.add(0, (x, 20.0))
-        picker.add(1, (x + 2, 21.0))
-    picker.delete(1)
-    path = tmp_path / "c.csv"
-    picker.save(path)
-    other = CorrespondencePicker(_images())
-    corr = other.load(path)
-    assert corr.point_id.tolist() == [0, 2]
-    np.testing.assert_allclose(other.pts, picker.pts)
-    assert other.select_nearest(1, (51.0, 22.0), 3.0) == 1
-    assert other.select_nearest(1, (51.0, 40.0), 3.0) is None
-    other.add(0, (70.0, 5.0))
-    assert other.point_id[-1] == 3  # new ids never reuse an existing one
-    # a file for the wrong number of views is refused
-    three = CorrespondencePicker(_images(3))
-    with pytest.raises(semlab.errors.ExperimentError, match="3 view"):
-        three.load(path)
-
-
-# --------------------------------------------------------------------------- widget panels
-
-def test_picker_widget_buttons_save_with_backup(tmp_path, no_matching):
-    path = tmp_path / "correspondences.csv"
+def _saved(path, n=1):
     first = CorrespondencePicker(_images())
-    first.add(0, (10.0, 10.0))
-    first.add(1, (11.0, 10.0))
+    for i in range(n):
+        first.add(0, (10.0 + 10 * i, 10.0))
+        first.add(1, (11.0 + 10 * i, 10.0))
     first.save(path)
 
-    box = picker_widget(_images(), path, F=F_AFFINE)
+
+def test_picker_widget_buttons_unsaved_count_save_with_backup(tmp_path):
+    path = tmp_path / "correspondences.csv"
+    _saved(path)
+    box = picker_widget(_images(), path, F=F_AFFINE, refine=None)
     picker, view = box.picker, box.figure
-    assert picker.n_points == 1  # the existing file was loaded
+    assert picker.n_points == 1 and "loaded 1 point(s)" in box.note.value
+    assert "all saved" in box.unsaved.value
     click(view.fig, view.axes[0], (40.0, 25.0))
+    assert "point 1: check the ×" in box.status.value
     box.buttons["Accept"].click()
     assert picker.current is None and picker.n_points == 2
-    table_html = box.children[-1].value
-    assert "<td>1</td>" in table_html and "40.00" in table_html
+    assert "1 unsaved change(s)" in box.unsaved.value
+    assert "<td>1</td>" in box.table.value and "40.00" in box.table.value
+    assert autosave_path(path).exists()           # the session is kept beside the file
     box.buttons["Save"].click()
-    status = box.children[1].value
-    assert "correspondences.bak.csv" in status and "saved 2 point(s)" in status
+    assert "correspondences.bak.csv" in box.note.value and "saved 2 point(s)" in box.note.value
+    assert "all saved" in box.unsaved.value and not autosave_path(path).exists()
     assert read_correspondences(tmp_path / "correspondences.bak.csv").n_points == 1
     assert read_correspondences(path).n_points == 2
+    box.buttons["Save"].click()
+    assert "nothing to save" in box.status.value
     picker.selected = 0
     box.buttons["Delete"].click()
-    assert picker.point_id.tolist() == [1]
+    assert picker.point_id.tolist() == [1] and "deleted point 0" in box.status.value
     box.buttons["Undo"].click()
     assert picker.point_id.tolist() == [0, 1]
+    box.buttons["Drop"].click()
+    assert "nothing to drop" in box.status.value
+    box.buttons["Hide points"].value = True
+    assert not view.show_points
+    # every button gives the keyboard focus back to the canvas
+    assert box.focus.count == 7
+    outputs = box.focus.output.outputs
+    assert outputs and "jupyter-matplotlib-canvas-div" in outputs[-1]["data"][
+        "application/javascript"] and box.focus.css_class in box._dom_classes
+
+
+def test_picker_widget_restores_the_autosave_on_a_rerun(tmp_path):
+    path = tmp_path / "correspondences.csv"
+    _saved(path)
+    box = picker_widget(_images(), path, refine=None)
+    click(box.figure.fig, box.figure.axes[0], (40.0, 25.0))
+    click(box.figure.fig, box.figure.axes[1], (42.0, 25.0))
+    click(box.figure.fig, box.figure.axes[0], (60.0, 45.0))   # being picked
+    # the cell is run again without saving: nothing is lost, and the panel says so
+    again = picker_widget(_images(), path, refine=None)
+    assert again.picker.n_points == 3 and again.picker.current == 2
+    assert "restored 1 unsaved change(s)" in again.note.value
+    assert "1 unsaved change(s)" in again.unsaved.value
+    again.buttons["Discard autosave"].click()
+    assert again.picker.n_points == 1 and not autosave_path(path).exists()
+    third = picker_widget(_images(), path, refine=None)
+    assert third.picker.n_points == 1 and "restored" not in third.note.value
+
+
+def test_picker_widget_bulk_review_of_automatic_points(tmp_path):
+    auto = np.array([[[10.0, 10.0], [11.0, 10.0]], [[60.0, 40.0], [61.0, 40.0]]])
+    box = picker_widget(_images(), tmp_path / "c.csv", refine=None,
+                        auto=(auto, np.array([0.02, 0.5])))
+    ax = box.figure.axes[0]
+    assert len(box.figure._art[0]["auto"].get_data()[0]) == 2
+    ax.set_xlim(-0.5, 30.0)                       # zoomed to the left part
+    box.buttons["Accept auto in view"].click()
+    assert box.picker.n_points == 1 and "accepted 1" in box.note.value
+    box.sigma.value = 0.1
+    box.buttons["Reject auto σ >"].click()
+    assert "rejected 1" in box.note.value
+    assert box.picker.auto_counts() == {"pending": 0, "accepted": 1, "rejected": 1}
+    assert len(box.figure._art[0]["auto"].get_data()[0]) == 0
+    box.buttons["Reject auto in view"].click()
+    assert "no pending automatic point" in box.status.value
 
 
 # --------------------------------------------------------------------------- lines
@@ -544,7 +510,7 @@ def test_screen_image_shows_the_visible_part_at_screen_resolution():
     is the image itself."""
     import matplotlib.pyplot as plt
 
-    from semlab.widgets import _ScreenImage
+    from semlab._canvas import _ScreenImage
 
     rng = np.random.default_rng(0)
     img = rng.random((1536, 2048))
@@ -575,23 +541,3 @@ def test_screen_image_shows_the_visible_part_at_screen_resolution():
         plt.close(fig)
 
 
-def test_click_proposal_matches_in_windows_like_on_whole_views():
-    """The default proposal (real sub-pixel matching) is computed in windows around the
-    guesses; it finds a known shift and agrees with matching on the whole views."""
-    from scipy import ndimage
-
-    rng = np.random.default_rng(7)
-    a = ndimage.gaussian_filter(rng.random((300, 420)), 2.0)
-    b = ndimage.shift(a, (-1.7, 3.3), order=3, mode="reflect")    # (rows, cols)
-    picker = CorrespondencePicker([a, b])
-    picker.add(0, (150.0, 120.0))
-    windowed = picker.pts[0, 1].copy()
-    np.testing.assert_allclose(windowed, [153.3, 118.3], atol=0.02)
-    whole = CorrespondencePicker([a, b])
-    whole.refine_window_px = 10_000
-    whole.add(0, (150.0, 120.0))
-    np.testing.assert_allclose(windowed, whole.pts[0, 1], atol=2e-3)
-    # near the image corner the window is shifted inside the image, not cut
-    picker.cancel()
-    picker.add(0, (18.0, 16.0))
-    np.testing.assert_allclose(picker.pts[0, 1], [21.3, 14.3], atol=0.05)
