@@ -1,0 +1,208 @@
+"""Subsets sized by the information they hold: the smallest that reaches a target error.
+
+:func:`adaptive_icgn` runs :func:`semlab.subset.icgn_refine` over growing square subsets
+and keeps, per point, the first (smallest) subset whose predicted 1σ (from the
+Gauss–Newton covariance and the measured image noise, see
+:attr:`semlab.subset.SubsetResult.sigma_px`) reaches ``target_sigma_px``. The shape
+function is chosen by what the information supports:
+
+- **affine** where the affine fit alone reaches the target: it resolves the local
+  deformation gradient and has no model bias;
+- otherwise **translation**, with the gradient terms held at ``init_warp`` (e.g. the
+  known x-scaling of a tilt pair or a registration's affine part): two parameters instead
+  of six, so a smaller predicted error from the same pixels. It is accepted only when the
+  held gradient fits: its residual may not exceed the affine fit's by more than the
+  chi-square scatter of the residual variance (three standard deviations of
+  ``sqrt(2 / dof)``), otherwise the model would bias the match and the subset grows.
+
+Points that do not reach the target with the largest subset keep their best match (the
+smallest predicted error), ``target_met = False`` and a reason; they are never dropped
+silently. Each point reports its subset half size, so the caller can give its spatial
+resolution ``(2 h + 1) × pixel_size_um``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .errors import SemlabError
+from .noise import image_noise_sigma
+from .subset import SubsetResult, _as_image, icgn_refine, prefilter_image
+
+__all__ = ["AdaptiveResult", "adaptive_icgn", "TARGET_MISSED"]
+
+TARGET_MISSED = "target_sigma_px not reached with the largest subset"
+
+
+@dataclass(frozen=True)
+class AdaptiveResult:
+    """Result of :func:`adaptive_icgn` for ``N`` points.
+
+    Attributes
+    ----------
+    subset : SubsetResult
+        The chosen match of every point (``subset.reason`` is empty where the target was
+        met, :data:`TARGET_MISSED` plus the reached σ where only the target was missed,
+        and IC-GN's reason where no subset converged).
+    half_window : (N,) int array
+        Half size ``h`` of the chosen square subset, pixels (``(2h+1)²`` pixels); 0 where
+        no subset converged.
+    shape_function : (N,) str array
+        ``"affine"``, ``"translation"`` or ``""`` (no match).
+    target_met : (N,) bool array
+        True where ``max(sigma_px) <= target_sigma_px``.
+    target_sigma_px : float
+        The target.
+    """
+
+    subset: SubsetResult
+    half_window: np.ndarray
+    shape_function: np.ndarray
+    target_met: np.ndarray
+    target_sigma_px: float
+
+    def __len__(self):
+        return len(self.half_window)
+
+    def subset_size_um(self, pixel_size_um):
+        """(N,) side of each point's subset in µm (its spatial resolution); NaN if none."""
+        s = (2.0 * self.half_window + 1.0) * float(pixel_size_um)
+        return np.where(self.half_window > 0, s, np.nan)
+
+
+def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
+                  half_windows=(7, 10, 14, 20, 28), warp="auto", init_warp=None, *,
+                  smooth_sigma_px=0.0, noise_sigma=None, max_iter=30, tol_px=1e-4,
+                  ref_prefiltered=None, cur_prefiltered=None):
+    """IC-GN matching with per-point subset size and shape function chosen by information.
+
+    Parameters
+    ----------
+    ref_img, cur_img : (H, W) arrays
+        Reference and current grey images.
+    pts_ref, pts_guess : (N, 2) arrays
+        Reference points and guesses ``(x, y)`` in pixels (see
+        :func:`semlab.subset.icgn_refine`).
+    target_sigma_px : float
+        Wanted predicted 1σ of the matched position (the larger of x and y), pixels.
+    half_windows : sequence of int
+        Subset half sizes tried, increasing; the last is the largest allowed.
+    warp : {"auto", "affine", "translation"}
+        Shape function: ``"auto"`` as in the module docstring, or one fixed.
+    init_warp : (N, 6) or (6,) array, optional
+        Starting (and, for translation, held) gradient terms, as in ``icgn_refine``.
+    smooth_sigma_px, noise_sigma, max_iter, tol_px, ref_prefiltered, cur_prefiltered
+        As in :func:`semlab.subset.icgn_refine` (the noise is measured once here).
+
+    Returns
+    -------
+    AdaptiveResult
+
+    Raises
+    ------
+    SemlabError
+        On an invalid target, sizes or ``warp``.
+    """
+    if not (np.isfinite(target_sigma_px) and target_sigma_px > 0):
+        raise SemlabError(f"target_sigma_px must be > 0, got {target_sigma_px!r}")
+    hs = [int(h) for h in half_windows]
+    if not hs or any(b <= a for a, b in zip(hs, hs[1:])) or hs[0] < 2:
+        raise SemlabError(f"half_windows must be increasing integers >= 2, got {half_windows!r}")
+    if warp not in ("auto", "affine", "translation"):
+        raise SemlabError(f"warp must be 'auto', 'affine' or 'translation', got {warp!r}")
+    ref = _as_image(ref_img, "ref_img")
+    cur = _as_image(cur_img, "cur_img")
+    pr = np.asarray(pts_ref, float).reshape(-1, 2)
+    pg = np.asarray(pts_guess, float).reshape(-1, 2)
+    n = len(pr)
+    if noise_sigma is None:
+        noise_sigma = (image_noise_sigma(ref), image_noise_sigma(cur))
+    rc = prefilter_image(ref, smooth_sigma_px) if ref_prefiltered is None else ref_prefiltered
+    cc = prefilter_image(cur, smooth_sigma_px) if cur_prefiltered is None else cur_prefiltered
+    iw = np.zeros((n, 6)) if init_warp is None else np.broadcast_to(
+        np.asarray(init_warp, float), (n, 6)).copy()
+    kw = dict(smooth_sigma_px=smooth_sigma_px, noise_sigma=noise_sigma, max_iter=max_iter,
+              tol_px=tol_px, ref_prefiltered=rc, cur_prefiltered=cc)
+
+    best = _empty(n, noise_sigma)     # best result so far of every point
+    best_sig = np.full(n, np.inf)
+    hw = np.zeros(n, int)
+    shape = np.full(n, "", dtype=object)
+    met = np.zeros(n, bool)
+    todo = np.arange(n)
+    guess = pg.copy()
+    for h in hs:
+        if len(todo) == 0:
+            break
+        cand = []
+        if warp in ("auto", "affine"):
+            cand.append(("affine", icgn_refine(ref, cur, pr[todo], guess[todo], half_window=h,
+                                               warp="affine", init_warp=iw[todo], **kw)))
+        if warp in ("auto", "translation"):
+            cand.append(("translation", icgn_refine(
+                ref, cur, pr[todo], guess[todo], half_window=h, warp="translation",
+                init_warp=iw[todo], **kw)))
+        if warp == "auto":
+            ra, rt = cand[0][1], cand[1][1]
+            dof = (2 * h + 1) ** 2 - 6
+            fits = rt.residual_ratio <= ra.residual_ratio + 3 * np.sqrt(2.0 / dof)
+            cand[1] = ("translation", _mask_result(rt, ~(fits | ~ra.converged)))
+        for name, r in cand:
+            s = np.where(r.converged, np.nanmax(r.sigma_px, axis=1, initial=-np.inf), np.inf)
+            s = np.where(np.isnan(s), np.inf, s)
+            ok_now = s <= target_sigma_px
+            # the first acceptable shape function at this size wins (affine first)
+            better = (s < best_sig[todo]) & ~met[todo] | (ok_now & ~met[todo])
+            k = np.flatnonzero(better)
+            best = _assign(best, todo[k], r, k)
+            best_sig[todo[k]] = s[k]
+            hw[todo[k]] = h
+            shape[todo[k]] = name
+            met[todo[k]] |= ok_now[k]
+            # a converged match is the next size's starting point
+            good = np.isfinite(r.pts[:, 0])
+            guess[todo[good]] = r.pts[good]
+        todo = todo[~met[todo]]
+    # never converged: keep IC-GN's reason; converged but above the target: say so
+    conv = best.converged
+    reason = np.array(best.reason, dtype=object)
+    miss = conv & ~met
+    for i in np.flatnonzero(miss):
+        reason[i] = f"{TARGET_MISSED} (sigma {best_sig[i]:.3f} px at h={hw[i]})"
+    hw[~conv] = 0
+    shape[~conv] = ""
+    best = replace(best, reason=reason.astype(str) if n else best.reason)
+    return AdaptiveResult(subset=best, half_window=hw, shape_function=shape.astype(str),
+                          target_met=met, target_sigma_px=float(target_sigma_px))
+
+
+def _mask_result(r, bad):
+    """A copy of r with rows ``bad`` marked not converged (translation misfit)."""
+    if not np.any(bad):
+        return r
+    conv = r.converged & ~bad
+    reason = np.where(bad & r.converged, "translation misfit (held gradient does not fit)",
+                      r.reason)
+    return replace(r, converged=conv, reason=reason)
+
+
+def _empty(n, noise_sigma):
+    return SubsetResult(pts=np.full((n, 2), np.nan), warp=np.full((n, 6), np.nan),
+                        zncc=np.full(n, -1.0), converged=np.zeros(n, bool),
+                        n_iter=np.zeros(n, int), sigma_px=np.full((n, 2), np.nan),
+                        reason=np.full(n, "no subset tried", dtype=object),
+                        residual_ratio=np.full(n, np.nan),
+                        noise_sigma=np.broadcast_to(np.asarray(noise_sigma, float), (2,)))
+
+
+def _assign(best, rows, r, k):
+    """best with rows ``rows`` replaced by rows ``k`` of r (a new object)."""
+    out = {}
+    for f in ("pts", "warp", "zncc", "converged", "n_iter", "sigma_px", "reason",
+              "residual_ratio"):
+        a = np.array(getattr(best, f), dtype=object if f == "reason" else None)
+        a[rows] = getattr(r, f)[k]
+        out[f] = a
+    return replace(best, **out)

@@ -1,0 +1,88 @@
+"""Tests of semlab.adaptive: subsets sized by the information they hold."""
+
+import numpy as np
+import pytest
+
+from semlab.adaptive import TARGET_MISSED, adaptive_icgn
+from semlab.errors import SemlabError
+from semlab.subset import icgn_refine
+
+from test_subset import _grid, _render, _texture
+
+
+def _scene(contrast_left=0.12, shift=(0.35, -0.25), shape=(140, 220), noise=2.0, seed=0):
+    """Texture whose contrast falls from 1 on the right to contrast_left on the left."""
+    T = _texture(0, kmax=0.5)
+    x = np.arange(shape[1])[None, :]
+    c = contrast_left + (1 - contrast_left) * np.clip((x - 60) / 100, 0, 1)
+    rng = np.random.default_rng(seed)
+    ref = 100 + c * (_render(T, shape) - 100) + rng.normal(0, noise, shape)
+    cur = 100 + c * (_render(T, shape, t=shift) - 100) + rng.normal(0, noise, shape)
+    return ref, cur, shift
+
+
+def test_subsets_grow_where_texture_is_poor():
+    ref, cur, shift = _scene()
+    pts = _grid(ref.shape, 32, 9)
+    a = adaptive_icgn(ref, cur, pts, np.rint(pts + shift), target_sigma_px=0.03,
+                      half_windows=(5, 8, 12, 18, 28), smooth_sigma_px=0.8)
+    poor, rich = pts[:, 0] < 55, pts[:, 0] > 165
+    conv = a.subset.converged
+    assert conv.mean() > 0.95
+    # poor texture -> larger subsets; rich texture -> small ones
+    assert np.median(a.half_window[poor & conv]) >= 2 * np.median(a.half_window[rich & conv])
+    assert np.median(a.half_window[rich & conv]) <= 8
+    # where the target is met the predicted and the actual errors meet it too
+    err = a.subset.pts - (pts + shift)
+    m = a.target_met
+    assert m.mean() > 0.7
+    assert np.all(a.subset.sigma_px[m].max(1) <= 0.03)
+    assert np.sqrt(np.mean(err[m] ** 2)) < 0.03 * 1.3
+    # missed targets are reported, never silent
+    miss = conv & ~m
+    assert all(r.startswith(TARGET_MISSED) for r in a.subset.reason[miss])
+    assert all(r == "" for r in a.subset.reason[m])
+    assert np.allclose(a.subset_size_um(0.03)[conv], (2 * a.half_window[conv] + 1) * 0.03)
+    # a fixed small subset has a much larger error on the poor side
+    f = icgn_refine(ref, cur, pts[poor], np.rint(pts[poor] + shift), half_window=5,
+                    smooth_sigma_px=0.8)
+    ef = f.pts - (pts[poor] + shift)
+    ea = err[poor]
+    assert np.sqrt(np.nanmean(ef ** 2)) > 2 * np.sqrt(np.nanmean(ea ** 2))
+
+
+def test_translation_with_held_gradient_where_texture_is_poor():
+    """Known x-scaling held fixed: translation reaches a target affine cannot."""
+    T = _texture(3, kmax=0.5)
+    shape = (120, 160)
+    A = np.diag([1.03, 1.0])
+    rng = np.random.default_rng(1)
+    ref = 100 + 0.25 * (_render(T, shape) - 100) + rng.normal(0, 2, shape)
+    cur = 100 + 0.25 * (_render(T, shape, A=A) - 100) + rng.normal(0, 2, shape)
+    pts = _grid(shape, 35, 12)
+    c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    truth = (pts - c) @ A.T + c
+    iw = [0, 0.03, 0, 0, 0, 0]
+    a = adaptive_icgn(ref, cur, pts, np.rint(truth), target_sigma_px=0.05,
+                      half_windows=(6, 9, 13), init_warp=iw, smooth_sigma_px=0.8)
+    assert (a.shape_function == "translation").sum() > (a.shape_function == "affine").sum()
+    ok = a.subset.converged
+    assert np.sqrt(np.mean((a.subset.pts[ok] - truth[ok]) ** 2)) < 0.06
+    # a wrong held gradient does not fit: translation is refused, the subset grows or
+    # falls back to affine
+    b = adaptive_icgn(ref, cur, pts, np.rint(truth), target_sigma_px=0.05,
+                      half_windows=(6, 9, 13), init_warp=[0, -0.05, 0, 0, 0, 0],
+                      smooth_sigma_px=0.8)
+    assert (b.shape_function == "translation").sum() < (a.shape_function == "translation").sum()
+
+
+def test_adaptive_errors():
+    ref, cur, _ = _scene(shape=(60, 60))
+    with pytest.raises(SemlabError, match="target_sigma_px"):
+        adaptive_icgn(ref, cur, [[30.0, 30.0]], [[30.0, 30.0]], target_sigma_px=0)
+    with pytest.raises(SemlabError, match="half_windows"):
+        adaptive_icgn(ref, cur, [[30.0, 30.0]], [[30.0, 30.0]], half_windows=(8, 5))
+    with pytest.raises(SemlabError, match="warp"):
+        adaptive_icgn(ref, cur, [[30.0, 30.0]], [[30.0, 30.0]], warp="quadratic")
+    a = adaptive_icgn(ref, cur, [[2.0, 2.0]], [[2.0, 2.0]])
+    assert not a.subset.converged[0] and a.half_window[0] == 0 and a.subset.reason[0]
