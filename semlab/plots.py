@@ -1,12 +1,22 @@
-"""Figures for the notebooks: every axis carries its unit.
+"""Figures for the notebooks: every axis carries its unit, every colour code a legend.
 
 Functions take numpy arrays (and an optional matplotlib ``Axes``) and return the figure or
-axes they drew on, so notebooks stay thin.
+axes they drew on, so notebooks stay thin. Heights below 1 µm are shown in nm
+(:func:`height_unit`); images in report figures are downsampled to the size they are seen
+at (:func:`downsample`), which keeps executed notebooks small.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+__all__ = [
+    "display_range", "show_image", "add_scale_bar", "show_images", "show_height_map",
+    "show_line_families", "show_epipolar_lines", "plot_stability", "show_static",
+    "height_unit", "downsample", "show_height_points", "plot_height_projections",
+    "plot_profile", "trend_sentence", "tracks_overview", "plot_fb_errors", "shared_bins",
+    "displacement_histograms", "show_picked_points",
+]
 
 
 def _plt():
@@ -85,19 +95,31 @@ def show_images(images, titles=None, pixel_size_um=None, ncols=None, size=3.6):
     return fig
 
 
-def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z (µm)", cmap="RdBu_r"):
-    """A height map (µm) with a symmetric diverging colour scale; z > 0 is an extrusion."""
+def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="RdBu_r"):
+    """A height map with a symmetric diverging colour scale; z > 0 is an extrusion.
+
+    Axes in µm when ``pixel_size_um`` is given (else pixels); heights in nm where every
+    ``|z|`` is below 1 µm (:func:`height_unit`).
+
+    Parameters
+    ----------
+    z_um : (H, W) array of heights (µm), NaN where unknown
+    """
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
-    lim = float(np.nanpercentile(np.abs(z_um), 99.5)) or 1.0
-    im = ax.imshow(z_um, cmap=cmap, vmin=-lim, vmax=lim)
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
+    unit, f = height_unit(z_um)
+    z = np.asarray(z_um, float) * f
+    lim = float(np.nanpercentile(np.abs(z), 99.5)) or 1.0
+    s = pixel_size_um or 1.0
+    h, w = z.shape
+    im = ax.imshow(z, cmap=cmap, vmin=-lim, vmax=lim,
+                   extent=(-0.5 * s, (w - 0.5) * s, (h - 0.5) * s, -0.5 * s))
+    xy_unit = "µm" if pixel_size_um else "px"
+    ax.set_xlabel(f"x ({xy_unit})")
+    ax.set_ylabel(f"y ({xy_unit})")
     ax.set_title(title)
-    ax.figure.colorbar(im, ax=ax, label="z (µm)")
-    if pixel_size_um:
-        add_scale_bar(ax, np.shape(z_um), pixel_size_um)
+    ax.figure.colorbar(im, ax=ax, label=f"z ({unit}), > 0 extrusion")
     return ax
 
 
@@ -183,3 +205,346 @@ def show_static(fig, dpi=90):
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     _plt().close(fig)
     display(Image(buf.getvalue()))
+
+
+# --------------------------------------------------------------------------- report figures
+
+#: smallest font of the report figures (points), readable at the notebook's width
+REPORT_FONTSIZE = 9
+#: colours of the reliability flag of a tracking step, and of the seed kinds
+FLAG_COLOURS = {"valid": "tab:green", "flagged": "tab:red"}
+SEED_COLOURS = {"corner": "tab:blue", "stereo": "tab:orange"}
+
+
+def height_unit(z_um):
+    """The unit heights read best in: ``("nm", 1000.0)`` when every finite ``|z|`` is below
+    1 µm, else ``("µm", 1.0)``.
+
+    Returns
+    -------
+    unit : str
+    factor : float
+        Multiply µm by it to get ``unit``.
+    """
+    z = np.abs(np.asarray(z_um, float))
+    z = z[np.isfinite(z)]
+    return ("nm", 1000.0) if z.size == 0 or z.max() < 1.0 else ("µm", 1.0)
+
+
+def downsample(img, max_px):
+    """Block-mean an image so that its larger side is at most ``max_px`` pixels.
+
+    Returns
+    -------
+    small : (h, w) float32 array
+    k : int
+        Block size (1 = unchanged); pixel ``(i, j)`` of ``small`` covers rows
+        ``k i .. k i + k - 1`` and columns ``k j .. k j + k - 1`` of ``img``.
+    """
+    img = np.asarray(img, np.float32)
+    k = max(1, int(np.ceil(max(img.shape[:2]) / float(max_px))))
+    if k == 1:
+        return img, 1
+    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
+    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)), k
+
+
+def _show_gray(ax, img, pixel_size_um=None, max_px=None):
+    """An SEM image in grey, its pixel centres at integer pixel (or µm) coordinates; returns
+    the scale from pixels to the axes unit (1 or ``pixel_size_um``)."""
+    vmin, vmax = display_range(img)
+    k = 1
+    if max_px:
+        img, k = downsample(img, max_px)
+    s = pixel_size_um or 1.0
+    h, w = img.shape[:2]
+    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest",
+              extent=(-0.5 * s, (w * k - 0.5) * s, (h * k - 0.5) * s, -0.5 * s))
+    unit = "µm" if pixel_size_um else "px"
+    ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
+    ax.tick_params(labelsize=REPORT_FONTSIZE)
+    return s
+
+
+def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cmap="coolwarm"):
+    """Measured heights as dots over the image, in µm axes.
+
+    Heights below 1 µm are shown in nm. The dots have a black edge so that a near-zero
+    height (the light middle of the diverging colour scale) does not look like a particle.
+
+    Parameters
+    ----------
+    img : (H, W) array
+        View 0.
+    pts_px : (N, 2) array of (x, y) pixels in that view
+    z_um : (N,) heights (µm), z > 0 extrusion
+    pixel_size_um : float
+    ax : Axes, optional
+
+    Returns
+    -------
+    Axes
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(8, 5.5))
+    unit, f = height_unit(z_um)
+    s = _show_gray(ax, img, pixel_size_um)
+    z = np.asarray(z_um, float) * f
+    lim = float(np.nanpercentile(np.abs(z), 99)) or 1.0
+    p = np.asarray(pts_px, float)
+    sc = ax.scatter(p[:, 0] * s, p[:, 1] * s, c=z, cmap=cmap, vmin=-lim, vmax=lim, s=16,
+                    edgecolors="black", linewidths=0.5)
+    cb = ax.figure.colorbar(sc, ax=ax, fraction=0.046, pad=0.02)
+    cb.set_label(f"z ({unit}), > 0 extrusion", fontsize=REPORT_FONTSIZE)
+    cb.ax.tick_params(labelsize=REPORT_FONTSIZE)
+    ax.set_title(title or f"heights of {len(z)} points over view 0", fontsize=REPORT_FONTSIZE + 1)
+    return ax
+
+
+def plot_height_projections(xyz_um, z_um, z_err_um):
+    """x–z and y–z projections of the heights with 1σ error bars (nm below 1 µm).
+
+    Parameters
+    ----------
+    xyz_um : (N, 3) array of material (x, y, z) µm
+    z_um, z_err_um : (N,) heights above the reference and their 1σ, µm
+
+    Returns
+    -------
+    Figure
+    """
+    plt = _plt()
+    unit, f = height_unit(z_um)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
+    for ax, k, name in ((axes[0], 0, "x"), (axes[1], 1, "y")):
+        ax.errorbar(xyz_um[:, k], np.asarray(z_um) * f, yerr=np.asarray(z_err_um) * f, fmt=".",
+                    ms=3, elinewidth=0.5, alpha=0.7, label="point ± 1σ")
+        ax.axhline(0, color="k", lw=0.6, label="reference surface")
+        ax.set_xlabel(f"{name} (µm)", fontsize=REPORT_FONTSIZE)
+        ax.tick_params(labelsize=REPORT_FONTSIZE)
+    axes[0].set_ylabel(f"z ({unit}), > 0 extrusion", fontsize=REPORT_FONTSIZE)
+    axes[0].legend(fontsize=REPORT_FONTSIZE, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def plot_profile(distance_um, z_um, z_err_um, ax=None, title="heights along the crack"):
+    """A height profile with 1σ error bars (nm below 1 µm) against distance (µm)."""
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(7, 3.5))
+    unit, f = height_unit(z_um)
+    ax.errorbar(distance_um, np.asarray(z_um) * f, yerr=np.asarray(z_err_um) * f, fmt="o", ms=3,
+                label="point ± 1σ")
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xlabel("distance along the line (µm)", fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel(f"z ({unit})", fontsize=REPORT_FONTSIZE)
+    ax.tick_params(labelsize=REPORT_FONTSIZE)
+    ax.set_title(title, fontsize=REPORT_FONTSIZE + 1)
+    return ax
+
+
+def _format_p(p):
+    return f"p = {p:.2g}" if p >= 1e-4 else "p < 0.0001"
+
+
+def trend_sentence(pos_um, z_um, axis="y", ci=0.95, per_um=10.0, alpha=0.05):
+    """One sentence on how height changes with position: slope, its CI and p.
+
+    Parameters
+    ----------
+    pos_um : (N,) positions along ``axis`` (µm)
+    z_um : (N,) heights (µm)
+    axis : str
+        Name of the position axis in the sentence.
+    ci : float
+        Confidence level of the interval.
+    per_um : float
+        The slope is given per this many µm (10: "per 10 µm").
+    alpha : float
+        Below this p the trend is called significant.
+
+    Returns
+    -------
+    str
+        e.g. ``"Along y, z rises by 12 nm per 10 µm (95 % CI 4.1 to 20 nm, p = 0.003,
+        n = 120): more extrusion at high y."``
+
+    Raises
+    ------
+    SemlabError
+        From :func:`semlab.stats.linear_trend` (fewer than 3 points, constant position).
+    """
+    from .stats import linear_trend
+
+    t = linear_trend(pos_um, z_um, ci=ci)
+    unit, f = height_unit(np.asarray(t["slope_ci"]) * per_um)
+    slope, lo, hi = (v * per_um * f for v in (t["slope"], *t["slope_ci"]))
+    verb = "rises" if slope > 0 else "falls"
+    head = (f"Along {axis}, z {verb} by {abs(slope):.2g} {unit} per {per_um:g} µm "
+            f"({100 * ci:.0f} % CI {lo:.2g} to {hi:.2g} {unit}, {_format_p(t['p'])}, "
+            f"n = {t['n']})")
+    if t["p"] >= alpha:
+        return head + f": no significant trend with {axis}."
+    side = "high" if slope > 0 else "low"
+    return head + f": more extrusion at {side} {axis}."
+
+
+def tracks_overview(frames, xy, valid, cycles=None, max_frames=4, max_px=300, trail_every=3):
+    """Tracks over at most ``max_frames`` frames, latest first, in a 2-column grid.
+
+    Each frame is downsampled (:func:`downsample`, larger side ``<= max_px``) so that the
+    figure stays small in an executed notebook; the markers stay at full-resolution pixel
+    coordinates. Titles give the frame and its cycle count; a legend explains the colours.
+
+    Parameters
+    ----------
+    frames : list of F (H, W) arrays, frame 0 the earliest
+    xy : (F, T, 2) array of (x, y) pixels of T tracks per frame
+    valid : (F, T) bool array, the reliability flag of each step
+    cycles : (F,) array, optional
+    max_frames : int
+    max_px : int
+    trail_every : int
+        Draw the trail (positions in the later frames) of every n-th valid track.
+
+    Returns
+    -------
+    Figure
+    """
+    plt = _plt()
+    n = len(frames)
+    order = np.unique(np.linspace(n - 1, 0, min(max_frames, n)).round().astype(int))[::-1]
+    ncols = min(2, len(order))
+    nrows = int(np.ceil(len(order) / ncols))
+    h, w = np.shape(frames[0])[:2]
+    panel_w = 5.0
+    fig, axes = plt.subplots(nrows, ncols, squeeze=False,
+                             figsize=(panel_w * ncols, panel_w * h / w * nrows + 0.9))
+    xy, valid = np.asarray(xy, float), np.asarray(valid, bool)
+    for ax, f in zip(axes.ravel(), order):
+        _show_gray(ax, frames[f], max_px=max_px)
+        ok = valid[f]
+        ax.plot(xy[f, ok, 0], xy[f, ok, 1], ".", color="lime", ms=4, label="valid step")
+        ax.plot(xy[f, ~ok, 0], xy[f, ~ok, 1], "x", color="red", ms=4, mew=1.2,
+                label="flagged step")
+        for j, i in enumerate(np.flatnonzero(ok)[::max(1, trail_every)]):
+            seg = xy[f:, i]
+            ax.plot(seg[:, 0], seg[:, 1], "-", color="yellow", lw=1.0,
+                    label="trail to the last frame" if j == 0 else None)
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        title = f"frame {f}" + ("" if cycles is None else f" · {cycles[f]:g} cycles")
+        ax.set_title(title, fontsize=REPORT_FONTSIZE + 1)
+    for ax in axes.ravel()[len(order):]:
+        ax.axis("off")
+    handles, labels = axes.ravel()[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=REPORT_FONTSIZE,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    return fig
+
+
+def plot_fb_errors(fb_error_px, valid, threshold_px, ax=None):
+    """Forward–backward error of every tracking step by frame, coloured by its flag.
+
+    Parameters
+    ----------
+    fb_error_px : (F, T) array (NaN where a track has no step)
+    valid : (F, T) bool array
+    threshold_px : float
+        The flag's threshold, drawn as a dashed line.
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.5, 3.8))
+    e, v = np.asarray(fb_error_px, float), np.asarray(valid, bool)
+    rng = np.random.default_rng(0)
+    for flag, sel_fn in (("valid", lambda f: v[f]), ("flagged", lambda f: ~v[f])):
+        xs, ys = [], []
+        for f in range(e.shape[0]):
+            sel = sel_fn(f) & np.isfinite(e[f]) & (e[f] > 0)
+            xs.append(f + rng.uniform(-0.2, 0.2, int(sel.sum())))
+            ys.append(e[f, sel])
+        xs, ys = np.concatenate(xs), np.concatenate(ys)
+        ax.scatter(xs, ys, s=5, color=FLAG_COLOURS[flag], label=f"{flag} ({len(xs)})")
+    ax.axhline(threshold_px, color="k", lw=0.8, ls="--", label=f"threshold {threshold_px:g} px")
+    ax.set_yscale("log")
+    ax.set_xlabel("frame (0 = earliest)", fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel("forward–backward error (px)", fontsize=REPORT_FONTSIZE)
+    ax.tick_params(labelsize=REPORT_FONTSIZE)
+    ax.legend(fontsize=REPORT_FONTSIZE)
+    return ax
+
+
+def shared_bins(arrays, n_bins=30):
+    """Histogram bin edges covering the finite values of all ``arrays`` (so that their
+    histograms compare bin by bin)."""
+    vals = np.concatenate([np.asarray(a, float).ravel() for a in arrays])
+    vals = vals[np.isfinite(vals)]
+    if vals.size == 0:
+        return np.linspace(0.0, 1.0, n_bins + 1)
+    lo, hi = float(vals.min()), float(vals.max())
+    if hi <= lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    return np.linspace(lo, hi, n_bins + 1)
+
+
+def displacement_histograms(dx_um, dy_um, d_um, seed, n_bins=30):
+    """Histograms of dx, dy and |d| (µm) per seed kind, with shared bins and overlapping
+    outlines (no kind hides another).
+
+    Parameters
+    ----------
+    dx_um, dy_um, d_um : (T,) arrays (NaN for tracks without a displacement)
+    seed : (T,) str array, e.g. ``"corner"`` / ``"stereo"``
+
+    Returns
+    -------
+    Figure
+    """
+    plt = _plt()
+    seed = np.asarray(seed)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    kinds = [k for k in SEED_COLOURS if np.any(seed == k)] + sorted(
+        set(np.unique(seed)) - set(SEED_COLOURS))
+    for ax, v, name in zip(axes, (dx_um, dy_um, d_um), ("dx", "dy", "|d|")):
+        v = np.asarray(v, float)
+        bins = shared_bins([v], n_bins)
+        for j, kind in enumerate(kinds):
+            sel = np.isfinite(v) & (seed == kind)
+            if sel.any():
+                ax.hist(v[sel], bins=bins, histtype="step", lw=1.6,
+                        color=SEED_COLOURS.get(kind, f"C{j + 2}"),
+                        label=f"{kind}-seeded ({int(sel.sum())})")
+        ax.set_xlabel(f"{name} (µm)", fontsize=REPORT_FONTSIZE)
+        ax.set_ylabel("tracks", fontsize=REPORT_FONTSIZE)
+        ax.tick_params(labelsize=REPORT_FONTSIZE)
+        ax.legend(fontsize=REPORT_FONTSIZE)
+    fig.tight_layout()
+    return fig
+
+
+def show_picked_points(images, pts, point_id, titles=None, pixel_size_um=None):
+    """The saved correspondences over every view, labelled by ``point_id``.
+
+    Parameters
+    ----------
+    images : list of V (H, W) arrays
+    pts : (N, V, 2) array of (x, y) pixels
+    point_id : (N,) int array
+
+    Returns
+    -------
+    Figure
+    """
+    plt = _plt()
+    v = len(images)
+    fig, axes = plt.subplots(1, v, figsize=(6 * v, 4.5), squeeze=False)
+    for k, ax in enumerate(axes[0]):
+        show_image(images[k], ax=ax, title=titles[k] if titles else f"view {k}",
+                   points=pts[:, k], labels=point_id, pixel_size_um=pixel_size_um)
+    fig.tight_layout()
+    return fig

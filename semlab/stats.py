@@ -7,6 +7,8 @@
 - :func:`compare_distributions`: two-sample Kolmogorov-Smirnov test.
 - :func:`correlation`: Pearson r and Spearman rho with percentile bootstrap confidence
   intervals (Efron & Tibshirani, *An Introduction to the Bootstrap*, 1993, ch. 13).
+- :func:`linear_trend`: least-squares slope with its Student-t confidence interval and the
+  p-value of "no slope" (``scipy.stats.linregress``).
 
 NaNs are dropped and counted; fewer than the required number of points raises
 :class:`semlab.errors.SemlabError`.
@@ -18,7 +20,7 @@ import numpy as np
 
 from .errors import SemlabError
 
-__all__ = ["bimodality", "compare_distributions", "correlation"]
+__all__ = ["bimodality", "compare_distributions", "correlation", "linear_trend"]
 
 
 def _finite_1d(values, name, min_n):
@@ -158,3 +160,55 @@ def correlation(x, y, n_boot=1000, seed=0, ci=0.95):
             "pearson_ci": np.nanpercentile(rb, q),
             "spearman_rho": float(sr.statistic), "spearman_p": float(sr.pvalue),
             "spearman_ci": np.nanpercentile(sb, q)}
+
+
+def linear_trend(x, y, ci=0.95):
+    """Least-squares line ``y = slope x + intercept`` with the slope's confidence interval.
+
+    The interval is ``slope ± t_{(1+ci)/2, n-2} · stderr`` (ordinary least squares,
+    independent normal residuals); ``p`` is the two-sided p-value of a zero slope, from
+    ``scipy.stats.linregress``. NaN pairs are dropped (counted in ``n_dropped``).
+
+    Parameters
+    ----------
+    x, y : (N,) arrays
+    ci : float
+        Confidence level in (0, 1).
+
+    Returns
+    -------
+    dict with ``slope``, ``intercept``, ``slope_ci`` (2,), ``p``, ``r``, ``n``, ``n_dropped``.
+
+    Raises
+    ------
+    SemlabError
+        Fewer than 3 complete pairs, different lengths, constant x, bad ci.
+
+    Examples
+    --------
+    >>> t = linear_trend([0, 1, 2, 3, 4], [1.0, 3.1, 4.9, 7.2, 8.9])
+    >>> round(t["slope"], 2), bool(t["slope_ci"][0] < 2 < t["slope_ci"][1])
+    (1.99, True)
+    """
+    from scipy.stats import linregress
+    from scipy.stats import t as student_t
+
+    xa = np.asarray(x, float).ravel()
+    ya = np.asarray(y, float).ravel()
+    if xa.shape != ya.shape:
+        raise SemlabError(f"x and y must have the same length, got {xa.size} and {ya.size}")
+    if not 0 < ci < 1:
+        raise SemlabError(f"ci must be in (0, 1), got {ci!r}")
+    ok = np.isfinite(xa) & np.isfinite(ya)
+    xa, ya = xa[ok], ya[ok]
+    n = len(xa)
+    if n < 3:
+        raise SemlabError(f"a trend needs at least 3 complete (x, y) pairs, got {n}")
+    if np.ptp(xa) == 0:
+        raise SemlabError("x is constant: the slope is undefined")
+    fit = linregress(xa, ya)
+    half = float(student_t.ppf(0.5 * (1 + ci), n - 2)) * float(fit.stderr)
+    return {"slope": float(fit.slope), "intercept": float(fit.intercept),
+            "slope_ci": np.array([fit.slope - half, fit.slope + half]),
+            "p": float(fit.pvalue), "r": float(fit.rvalue), "n": n,
+            "n_dropped": int((~ok).sum())}

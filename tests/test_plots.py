@@ -1,0 +1,164 @@
+"""Report figures of semlab.plots: units, legends, sizes and the trend sentence."""
+
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from semlab import plots  # noqa: E402
+from semlab.errors import SemlabError  # noqa: E402
+from semlab.stats import linear_trend  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plt.close("all")
+
+
+def _png_bytes(fig, dpi=100):
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return len(buf.getvalue())
+
+
+def test_height_unit_switches_to_nm_below_one_micrometre():
+    assert plots.height_unit([0.06, -0.02]) == ("nm", 1000.0)
+    assert plots.height_unit([0.5, np.nan, -1.2]) == ("µm", 1.0)
+    assert plots.height_unit([]) == ("nm", 1000.0)
+
+
+def test_downsample_block_means():
+    img = np.arange(7 * 10, dtype=float).reshape(7, 10)
+    small, k = plots.downsample(img, 5)
+    assert k == 2 and small.shape == (3, 5)
+    assert small[1, 2] == pytest.approx(img[2:4, 4:6].mean())
+    same, k = plots.downsample(img, 10)
+    assert k == 1 and same.shape == img.shape
+
+
+def test_show_height_points_um_axes_nm_colourbar_and_contrasting_edges():
+    rng = np.random.default_rng(0)
+    img = rng.random((60, 80))
+    pts = rng.uniform(0, 79, (30, 2))
+    z = rng.uniform(-0.06, 0.06, 30)
+    ax = plots.show_height_points(img, pts, z, pixel_size_um=0.03)
+    assert ax.get_xlabel() == "x (µm)" and ax.get_ylabel() == "y (µm)"
+    left, right, bottom, top = ax.images[0].get_extent()
+    assert right == pytest.approx(79.5 * 0.03) and bottom == pytest.approx(59.5 * 0.03)
+    sc = ax.collections[0]
+    np.testing.assert_allclose(sc.get_offsets(), pts * 0.03)
+    np.testing.assert_allclose(sc.get_array(), z * 1000)          # nm
+    assert np.allclose(sc.get_edgecolors()[:, :3], 0.0)           # black edges
+    cbar_ax = ax.figure.axes[-1]
+    assert cbar_ax.get_ylabel().startswith("z (nm)")
+
+
+def test_show_height_map_in_um_and_nm():
+    z = np.linspace(-0.05, 0.05, 20 * 30).reshape(20, 30)
+    ax = plots.show_height_map(z, pixel_size_um=0.1)
+    assert ax.get_xlabel() == "x (µm)"
+    assert ax.images[0].get_extent()[1] == pytest.approx(2.95)
+    assert ax.figure.axes[-1].get_ylabel().startswith("z (nm)")
+    assert ax.images[0].get_array().max() == pytest.approx(50.0)
+
+
+def test_projections_and_profile_in_nm_with_legends():
+    rng = np.random.default_rng(1)
+    xyz = np.column_stack([rng.uniform(0, 10, 40), rng.uniform(0, 8, 40), np.zeros(40)])
+    z = rng.normal(0, 0.03, 40)
+    fig = plots.plot_height_projections(xyz, z, np.full(40, 0.01))
+    assert fig.axes[0].get_ylabel().startswith("z (nm)")
+    assert fig.axes[0].get_legend() is not None
+    ax = plots.plot_profile(np.arange(5.0), [0.2, 0.1, 0, -0.1, 1.5], np.full(5, 0.05))
+    assert ax.get_ylabel() == "z (µm)"          # one value above 1 µm: µm
+
+
+def test_linear_trend_ci_covers_the_true_slope():
+    rng = np.random.default_rng(2)
+    hits = 0
+    for seed in range(200):
+        r = np.random.default_rng(seed)
+        x = r.uniform(0, 20, 50)
+        y = 0.004 * x + r.normal(0, 0.02, 50)
+        lo, hi = linear_trend(x, y)["slope_ci"]
+        hits += lo <= 0.004 <= hi
+    assert 0.90 <= hits / 200 <= 0.99             # a 95 % interval
+    with pytest.raises(SemlabError, match="at least 3"):
+        linear_trend([1, 2], [1, 2])
+    with pytest.raises(SemlabError, match="constant"):
+        linear_trend([1, 1, 1], [1, 2, 3])
+
+
+def test_trend_sentence_reports_slope_ci_p_and_agrees_with_the_sign():
+    rng = np.random.default_rng(3)
+    y = rng.uniform(0, 20, 200)
+    z = 0.002 * y + rng.normal(0, 0.005, 200)     # +20 nm per 10 µm
+    s = plots.trend_sentence(y, z, axis="y")
+    assert s.startswith("Along y, z rises by 20 nm per 10 µm (95 % CI ")
+    assert "p < 0.0001" in s and "n = 200" in s and s.endswith("more extrusion at high y.")
+    assert s.count(".") <= 3 and "\n" not in s     # one sentence
+    s = plots.trend_sentence(y, -z, axis="y")
+    assert "falls by" in s and s.endswith("more extrusion at low y.")
+    noise = np.random.default_rng(30).normal(0, 0.005, 200)
+    assert linear_trend(y, noise)["p"] > 0.05
+    assert plots.trend_sentence(y, noise, axis="x").endswith("no significant trend with x.")
+
+
+def test_tracks_overview_grid_cycles_legend_and_small_images():
+    rng = np.random.default_rng(4)
+    frames = [rng.random((384, 512)) for _ in range(8)]
+    xy = np.tile(rng.uniform(20, 360, (1, 25, 2)), (8, 1, 1))
+    valid = rng.random((8, 25)) > 0.2
+    fig = plots.tracks_overview(frames, xy, valid, cycles=np.arange(8) * 1000.0)
+    shown = [ax for ax in fig.axes if ax.images]
+    assert len(shown) == 4
+    titles = [ax.get_title() for ax in shown]
+    assert titles[0] == "frame 7 · 7000 cycles" and titles[-1].startswith("frame 0")
+    assert all(max(ax.images[0].get_array().shape) <= 300 for ax in shown)
+    assert all(t.get_fontsize() >= plots.REPORT_FONTSIZE for ax in shown
+               for t in ax.get_xticklabels())
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels == ["valid step", "flagged step", "trail to the last frame"]
+    # small enough for a notebook: well under 1 MB at the inline backend's resolution
+    assert _png_bytes(fig) < 600_000
+    assert len(plots.tracks_overview(frames[:2], xy[:2], valid[:2]).axes) == 2
+
+
+def test_fb_errors_legend_names_every_colour():
+    e = np.abs(np.random.default_rng(5).normal(0, 0.3, (5, 40))) + 1e-3
+    v = e < 0.5
+    ax = plots.plot_fb_errors(e, v, 0.5)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels[0] == f"valid ({int(v.sum())})" and labels[1] == f"flagged ({int((~v).sum())})"
+    assert labels[2] == "threshold 0.5 px"
+
+
+def test_displacement_histograms_share_bins_and_overlap_as_outlines():
+    rng = np.random.default_rng(6)
+    seed = np.array(["corner"] * 60 + ["stereo"] * 20)
+    d = np.r_[rng.normal(0.5, 0.1, 60), rng.normal(0.9, 0.05, 20)]
+    fig = plots.displacement_histograms(d - 0.3, d * 0.1, np.abs(d), seed)
+    for ax in fig.axes:
+        patches = ax.patches
+        assert len(patches) == 2
+        edges = [p.get_path().vertices[:, 0] for p in patches]
+        assert np.array_equal(np.unique(edges[0]), np.unique(edges[1]))   # same bins
+        assert all(not p.get_fill() for p in patches)                     # outlines
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert labels == ["corner-seeded (60)", "stereo-seeded (20)"]
+    np.testing.assert_allclose(plots.shared_bins([[0, 1], [3, np.nan]], 3), [0, 1, 2, 3])
+
+
+def test_show_picked_points_one_panel_per_view():
+    rng = np.random.default_rng(7)
+    imgs = [rng.random((40, 50))] * 3
+    pts = rng.uniform(0, 39, (4, 3, 2))
+    fig = plots.show_picked_points(imgs, pts, np.arange(4), titles=["a", "b", "c"])
+    assert [ax.get_title() for ax in fig.axes] == ["a", "b", "c"]
+    assert len(fig.axes[1].texts) == 4
