@@ -1,0 +1,291 @@
+"""Accuracy matrix: heights over texture regime × noise × tilt pair × method, one table.
+
+Run:  python benchmarks/accuracy_matrix.py            # full matrix (~20-30 min on 2 cores)
+      python benchmarks/accuracy_matrix.py --quick    # 3 small cells (< 3 min)
+
+Writes ``benchmarks/results/accuracy_matrix.md`` (``--quick``: ``accuracy_matrix_quick.md``;
+``--out`` to change) and prints it.
+
+Cells
+-----
+- regimes: ``speckle``, ``polished``, ``featureless`` (:mod:`semlab.synth`) and the real
+  textures ``real:fei`` and ``real:quartz`` (:mod:`semlab.realtex`: the real image is view 0,
+  the other view is rendered by a known surface), all with the same surface per seed;
+- noise: the :data:`semlab.synth.NOISE_LEVELS` presets ``low`` and ``realistic`` (Poisson shot
+  noise, per-image gain/offset, 8-bit);
+- tilt pairs: −5°/+5° and 0°/+8°; 384×512 px, 0.03 µm/px, 50 hand-click-like points with
+  0.5 px click noise.
+
+Methods, all scored at the same points
+--------------------------------------
+Two point sets per cell: the **clicks** semlab refined (``pipeline.match_views(...,
+"refined")``) and the points semlab's **automatic** matching accepted (``"auto"``). At each
+set's view-0 positions the references are computed in the same run on the same images:
+
+- ``DeepFlow``: ``cv2.optflow.createOptFlow_DeepFlow()`` with its default settings, view 0 →
+  view 1, sampled bilinearly at the points;
+- ``ECC 15px``: ``cv2.findTransformECC`` with ``MOTION_TRANSLATION`` per point, a 15×15 px
+  template around the point's pixel, started from the DeepFlow displacement (ECC is a local
+  method); points where it fails to converge are dropped from its row (see its points);
+- ``DIS medium``: ``cv2.DISOpticalFlow_create(DISOPTICAL_FLOW_PRESET_MEDIUM)``; ``DIS fine``:
+  the same down to the full resolution (``setFinestScale(0)``; OpenCV has no FINE preset,
+  only ULTRAFAST, FAST and MEDIUM).
+
+Heights of every method come from the same affine reconstruction
+(``reconstruct.heights_from_tilts`` with the known tilts); semlab's predicted 1σ is its
+``z_err_um`` (``pipeline.run_stereo``, matching σ, no bootstrap). Errors are measured after
+removing the best-fit plane of the error (``validation.height_errors``).
+
+Columns: height RMSE and robust σ (1.4826·MAD of the plane-removed error) in nm; the number
+of points; coverage (clicks: fraction refined; automatic: fraction of the 8-px grid cells of
+the view inside a 16 px border that hold an accepted point); semlab's median predicted 1σ
+(nm), the fractions of points within 1σ and 2σ of the truth, and efficiency (median predicted
+σ / robust σ of the actual error: 1 for error bars of the right size); the RMSE ratio to
+DeepFlow at the same points.
+
+semlab is called only through :func:`semlab_heights` (a thin adapter): an API rename is a
+one-line change there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from semlab import experiment, pipeline, realtex, reconstruct, synth, validation
+
+REGIMES = ("speckle", "polished", "featureless", "real:fei", "real:quartz")
+NOISES = ("low", "realistic")
+PAIRS = ((-5.0, 5.0), (0.0, 8.0))
+REFERENCES = ("DeepFlow", "ECC 15px", "DIS medium", "DIS fine")
+RESULTS = Path(__file__).resolve().parent / "results" / "accuracy_matrix.md"
+
+
+# ------------------------------------------------------------------------------ scenes
+def make_cell(tmp, regime, noise, tilts, seed=0, size=(384, 512), n_clicks=50):
+    """An experiment for one cell: synth regime or real texture, stereo only."""
+    out = Path(tmp) / f"{regime.replace(':', '_')}_{noise}_{tilts[0]:+g}_{tilts[1]:+g}_{seed}"
+    kw = dict(seed=seed, size=size, tilts_deg=tilts, n_frames=0, n_clicks=n_clicks,
+              detector=noise, write_block=False, progress=False)
+    if regime.startswith("real:"):
+        toml = realtex.make_experiment(out, regime[5:], **kw)
+    else:
+        toml = synth.make_experiment(out, texture=regime, **kw)
+    return experiment.load(toml)
+
+
+# ------------------------------------------------------------------------------ semlab adapter
+@dataclass
+class Heights:
+    pts: np.ndarray        # (N, 2, 2) view-0 and view-1 (x, y) px
+    z_err_um: np.ndarray   # (N,) predicted 1σ (NaN when the method gives none)
+    n_tried: int           # points the method was asked for (clicks) or grid cells (auto)
+    seconds: float
+
+
+def semlab_heights(exp, method):
+    """semlab's matches and predicted height σ (the one place semlab's API is called)."""
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False)
+    corr = exp.correspondences()
+    n = len(corr.pts) if (method == "refined" and corr is not None) else 0
+    return Heights(res.pts[:, :2], np.asarray(res.z_err_um, float), n,
+                   time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------------------ references
+def _u8(img):
+    img = np.asarray(img, float)
+    if img.max() > 255 or img.min() < 0:
+        img = (img - img.min()) / (np.ptp(img) + 1e-12) * 255
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _sample_flow(flow, p):
+    return np.column_stack([ndimage.map_coordinates(flow[..., k], [p[:, 1], p[:, 0]], order=1,
+                                                    mode="nearest") for k in (0, 1)])
+
+
+def dense_flows(v0, v1):
+    """Dense view-0 → view-1 flows of the dense references, (H, W, 2) each, and their times."""
+    a, b = _u8(v0), _u8(v1)
+    out, secs = {}, {}
+    t0 = time.perf_counter()
+    out["DeepFlow"] = cv2.optflow.createOptFlow_DeepFlow().calc(a, b, None)
+    secs["DeepFlow"] = time.perf_counter() - t0
+    for name, finest in (("DIS medium", None), ("DIS fine", 0)):
+        t0 = time.perf_counter()
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        if finest is not None:  # OpenCV has no FINE preset: MEDIUM down to full resolution
+            dis.setFinestScale(finest)
+        out[name] = dis.calc(a, b, None)
+        secs[name] = time.perf_counter() - t0
+    return out, secs
+
+
+def ecc_points(v0, v1, p0, init_disp, half=7):
+    """ECC translation per point (15×15 template), from an initial displacement.
+
+    Returns (N, 2) displacements (NaN where ECC fails or leaves the image).
+    """
+    a = np.asarray(v0, np.float32)
+    b = np.asarray(v1, np.float32)
+    h, w = a.shape
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    out = np.full((len(p0), 2), np.nan)
+    for i, ((x, y), (dx, dy)) in enumerate(zip(p0, init_disp)):
+        c, r = int(round(x)), int(round(y))
+        if not (half <= c < w - half and half <= r < h - half):
+            continue
+        tpl = a[r - half:r + half + 1, c - half:c + half + 1]
+        if tpl.std() < 1e-6:
+            continue
+        warp = np.array([[1, 0, c - half + dx], [0, 1, r - half + dy]], np.float32)
+        try:
+            _, warp = cv2.findTransformECC(tpl, b, warp, cv2.MOTION_TRANSLATION, crit, None, 1)
+        except cv2.error:
+            continue
+        d = np.array([warp[0, 2] - (c - half), warp[1, 2] - (r - half)])
+        if np.all(np.isfinite(d)) and np.hypot(*(d - (dx, dy))) < 2 * half:
+            out[i] = d
+    return out
+
+
+def reference_matches(v0, v1, p0, flows):
+    """(N, 2, 2) matches of every reference method at view-0 points ``p0``."""
+    out = {}
+    for name in ("DeepFlow", "DIS medium", "DIS fine"):
+        out[name] = np.stack([p0, p0 + _sample_flow(flows[name], p0)], 1)
+    d = ecc_points(v0, v1, p0, _sample_flow(flows["DeepFlow"], p0))
+    out["ECC 15px"] = np.stack([p0, p0 + d], 1)
+    return out
+
+
+# ------------------------------------------------------------------------------ scoring
+def coverage_auto(p0, shape, cell=8, border=16):
+    """Fraction of the cell×cell grid cells inside ``border`` that hold an accepted point."""
+    h, w = shape
+    nx, ny = (w - 2 * border) // cell, (h - 2 * border) // cell
+    cx = np.floor((p0[:, 0] - border) / cell).astype(int)
+    cy = np.floor((p0[:, 1] - border) / cell).astype(int)
+    ok = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+    return len(set(zip(cx[ok], cy[ok]))) / float(nx * ny)
+
+
+def score(exp, pts, tilts, z_err_um=None):
+    """Height errors of matches ``pts`` (N, 2, 2) against the truth (nm)."""
+    ok = np.all(np.isfinite(pts.reshape(len(pts), -1)), axis=1)
+    if ok.sum() < 4:
+        return {"n": int(ok.sum()), "rmse": np.nan, "rsig": np.nan, "pred": np.nan,
+                "in1": np.nan, "in2": np.nan, "ok": ok}
+    p = pts[ok]
+    z = reconstruct.heights_from_tilts(p, list(tilts), exp.pixel_size_um).xyz_um[:, 2]
+    zt = validation.true_height_at(exp.truth_dir, p[:, 0])
+    e = validation.height_errors(z, zt, p[:, 0])
+    err = e["err_um"]
+    rsig = 1.4826 * np.median(np.abs(err - np.median(err)))
+    row = {"n": int(ok.sum()), "rmse": 1000 * e["rmse_um"], "rsig": 1000 * rsig, "ok": ok,
+           "pred": np.nan, "in1": np.nan, "in2": np.nan}
+    if z_err_um is not None:
+        zs = np.asarray(z_err_um, float)[ok]
+        row.update(pred=1000 * float(np.median(zs)), in1=float(np.mean(np.abs(err) < zs)),
+                   in2=float(np.mean(np.abs(err) < 2 * zs)))
+    return row
+
+
+def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
+    exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
+    v0, v1 = exp.views()[:2]
+    flows, _ = dense_flows(v0, v1)
+    rows = []
+    for set_name, method in (("clicks", "refined"), ("auto", "auto")):
+        try:
+            sh = semlab_heights(exp, method)
+        except Exception as exc:  # a failing method is a result, not a crash of the table
+            rows.append({"set": set_name, "method": f"semlab {method}", "fail": str(exc)[:80]})
+            continue
+        p0 = sh.pts[:, 0]
+        cov = (len(p0) / sh.n_tried if sh.n_tried else np.nan) if set_name == "clicks" \
+            else coverage_auto(p0, v0.shape)
+        sem = score(exp, sh.pts, tilts, sh.z_err_um)
+        refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
+        df = refs["DeepFlow"]["rmse"]
+        for name, r in [(f"semlab {method}", sem)] + list(refs.items()):
+            rows.append({"set": set_name, "method": name, "cov": cov, "df_ratio": r["rmse"] / df,
+                         "seconds": sh.seconds if name.startswith("semlab") else np.nan, **r})
+    return rows
+
+
+# ------------------------------------------------------------------------------ table
+def _f(v, fmt):
+    return "–" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
+def table(cells):
+    head = ("| regime | noise | tilts | points | method | RMSE (nm) | robust σ (nm) | N | coverage "
+            "| median predicted σ (nm) | within 1σ / 2σ | efficiency | ÷ DeepFlow |")
+    lines = [head, "|" + "---|" * 13]
+    for (regime, noise, tilts), rows in cells:
+        for r in rows:
+            lead = f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {r['set']} | {r['method']} "
+            if "fail" in r:
+                lines.append(lead + f"| failed: {r['fail']} |" + " |" * 7)
+                continue
+            eff = r["pred"] / r["rsig"] if np.isfinite(r["pred"]) else np.nan
+            within = (f"{r['in1']:.0%} / {r['in2']:.0%}" if np.isfinite(r["in1"]) else "–")
+            lines.append(lead + f"| {_f(r['rmse'], '.1f')} | {_f(r['rsig'], '.1f')} | {r['n']} | "
+                         f"{_f(r['cov'], '.0%')} | {_f(r['pred'], '.1f')} | {within} | "
+                         f"{_f(eff, '.2f')} | {_f(r['df_ratio'], '.2f')} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true",
+                    help="3 cells (speckle, polished, real:fei; realistic noise; ±5°) at 192×256")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None,
+                    help=f"markdown file (default {RESULTS.name}, or accuracy_matrix_quick.md)")
+    args = ap.parse_args(argv)
+    if args.out is None:
+        args.out = RESULTS.with_name("accuracy_matrix_quick.md") if args.quick else RESULTS
+    if args.quick:
+        grid = [(r, "realistic", PAIRS[0]) for r in ("speckle", "polished", "real:fei")]
+        size, n_clicks = (192, 256), 20
+    else:
+        grid = [(r, n, t) for r in REGIMES for n in NOISES for t in PAIRS]
+        size, n_clicks = (384, 512), 50
+    t0 = time.perf_counter()
+    cells = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for regime, noise, tilts in grid:
+            tc = time.perf_counter()
+            cells.append(((regime, noise, tilts),
+                          run_cell(tmp, regime, noise, tilts, args.seed, size, n_clicks)))
+            print(f"{regime} {noise} {tilts}: {time.perf_counter() - tc:.0f} s", flush=True)
+    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    text = (f"# Accuracy matrix ({'quick' if args.quick else 'full'})\n\n"
+            f"`python benchmarks/accuracy_matrix.py{' --quick' if args.quick else ''}` on {when}, "
+            f"{size[0]}×{size[1]} px, 0.03 µm/px, seed {args.seed}, "
+            f"{time.perf_counter() - t0:.0f} s. Heights after removing the plane of the error; "
+            "all methods at the same points (see the script's docstring).\n\n" + table(cells) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(text)
+    return cells
+
+
+if __name__ == "__main__":
+    main()
