@@ -558,6 +558,7 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
     TrackingResult
     """
     from . import tracking
+    from .registration import register_points
 
     if exp.series is None:
         raise SemlabError(f"{exp.toml_path}: no [series] table, so nothing to track")
@@ -569,7 +570,7 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
     seeds, kinds, sidx = [corners], [np.array(["corner"] * len(corners))], [np.full(len(corners), -1)]
     registration = {}
     if stereo is not None and exp.stereo is not None:
-        mapped, A, residual = tracking.register_points(exp.views()[0], frames[-1], stereo[0])
+        mapped, A, residual = register_points(exp.views()[0], frames[-1], stereo[0])
         h, w = frames[-1].shape
         inside = ((mapped[:, 0] > 12) & (mapped[:, 0] < w - 13) & (mapped[:, 1] > 12)
                   & (mapped[:, 1] < h - 13))

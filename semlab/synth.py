@@ -321,7 +321,7 @@ def _slip_lines(rng, extent, step, s, bands, amp, shape):
 
 
 def _solve_view(scene, shape, tilt_deg, pixel_size_um, center_px, height_scale=1.0,
-                disp_fraction_left=0.0, n_iter=30):
+                disp_fraction_left=0.0, n_iter=30, pixel_xy=None):
     """Material end-state coordinates (x, y) seen at every pixel of a view.
 
     Solves ``s (u − cx) = X cosθ + g z(x) sinθ``, ``s (v − cy) = Y`` where ``(X, Y) =
@@ -332,7 +332,7 @@ def _solve_view(scene, shape, tilt_deg, pixel_size_um, center_px, height_scale=1
     cx, cy = center_px
     t = np.deg2rad(tilt_deg)
     s = pixel_size_um
-    vv, uu = np.mgrid[0:h, 0:w].astype(float)
+    vv, uu = np.mgrid[0:h, 0:w].astype(float) if pixel_xy is None else (pixel_xy[1], pixel_xy[0])
     a = s * (uu - cx)
     b = s * (vv - cy)
     x = a / np.cos(t)
@@ -367,7 +367,8 @@ def _se_yield(scene, x, y, tilt_deg, height_scale, h_um=1e-3):
 
 
 def render(scene, shape, tilt_deg=0.0, center_px=None, height_scale=1.0, disp_fraction_left=0.0,
-           contrast=1.0, blur_px=0.7, noise=0.01, gain=1.0, offset=0.0, shading=True, rng=None):
+           contrast=1.0, blur_px=0.7, noise=0.01, gain=1.0, offset=0.0, shading=True, rng=None,
+           drift=None):
     """Render one SEM image of the scene.
 
     Parameters
@@ -392,6 +393,9 @@ def render(scene, shape, tilt_deg=0.0, center_px=None, height_scale=1.0, disp_fr
     shading : bool
         Topographic contrast (incidence-angle yield and edge brightening); False renders the
         material texture alone (for geometry tests).
+    drift : dict, optional
+        Stage and scan drift of this image (one item of :func:`stage_drift`): the image is
+        rendered in the drifted pixel geometry (see :func:`drift_pixel_map`).
 
     Returns
     -------
@@ -401,7 +405,9 @@ def render(scene, shape, tilt_deg=0.0, center_px=None, height_scale=1.0, disp_fr
     """
     center_px = image_center(shape) if center_px is None else center_px
     s = scene.pixel_size_um
-    x, y = _solve_view(scene, shape, tilt_deg, s, center_px, height_scale, disp_fraction_left)
+    pix = None if drift is None else drift_pixel_map(drift, shape)
+    x, y = _solve_view(scene, shape, tilt_deg, s, center_px, height_scale, disp_fraction_left,
+                       pixel_xy=pix)
     tex = scene.texture_at(x, y, contrast)
     yld, edge = _se_yield(scene, x, y, tilt_deg, height_scale if shading else 0.0)
     img = 0.45 * tex * yld + edge
@@ -540,6 +546,88 @@ def frame_positions(scene, xy_um, disp_fraction_left, shape, center_px=None):
     s = scene.pixel_size_um
     return np.column_stack([center_px[0] + (xy[:, 0] - disp_fraction_left * ux) / s,
                             center_px[1] + (xy[:, 1] - disp_fraction_left * uy) / s])
+
+
+# ---------------------------------------------------------------------------------------------
+# Stage drift between frames and scan drift within a frame
+
+#: Columns of ``truth/drift.csv``.
+DRIFT_TRUTH_COLUMNS = ("frame", "dx_px", "dy_px", "rotation_deg", "scale", "scan_dx_px",
+                       "scan_dy_px")
+
+
+def stage_drift(n_frames, shift_px=0.0, rotation_deg=0.0, scale=0.0, scan_px=0.0, rng=None):
+    """Random stage drift of each frame of a series, the last frame being the reference.
+
+    Every frame but the last is placed independently (a stage moved and brought back): a
+    shift of the image centre of length uniform in ``[0.5, 1] × shift_px`` in a random
+    direction, a rotation about the centre uniform in ``±rotation_deg`` and a magnification
+    ``1 + uniform(±scale)``. ``scan_px`` adds a slow drift while the frame is scanned: row
+    ``v`` sees the sample shifted by ``(scan_dx, scan_dy) · (t + 0.3 t²) / 1.3`` with
+    ``t = v / (H − 1)``, ``(scan_dx, scan_dy)`` uniform in ``±scan_px``. The last frame is
+    neither drifted nor scan-drifted (truth positions there are the end-state pixels).
+
+    Returns
+    -------
+    list of n_frames dicts with ``dx_px, dy_px, rotation_deg, scale, scan_dx_px, scan_dy_px``.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    out = []
+    for n in range(n_frames):
+        a, r = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 1.0) * shift_px
+        d = {"dx_px": r * np.cos(a), "dy_px": r * np.sin(a),
+             "rotation_deg": rng.uniform(-1, 1) * rotation_deg, "scale": 1 + rng.uniform(-1, 1) * scale,
+             "scan_dx_px": rng.uniform(-1, 1) * scan_px, "scan_dy_px": rng.uniform(-1, 1) * scan_px}
+        if n == n_frames - 1:
+            d = {k: (1.0 if k == "scale" else 0.0) for k in d}
+        out.append({k: float(v) for k, v in d.items()})
+    return out
+
+
+def _stage_matrix(drift, shape):
+    """(3, 3) map of undrifted pixels to drifted pixels (before the scan drift)."""
+    h, w = shape
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    t = np.deg2rad(drift["rotation_deg"])
+    A = drift["scale"] * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    m = np.eye(3)
+    m[:2, :2] = A
+    m[:2, 2] = c + np.array([drift["dx_px"], drift["dy_px"]]) - A @ c
+    return m
+
+
+def _scan_offset(drift, v, h):
+    t = np.asarray(v, float) / max(h - 1, 1)
+    f = (t + 0.3 * t * t) / 1.3
+    return drift["scan_dx_px"] * f, drift["scan_dy_px"] * f
+
+
+def drift_pixel_map(drift, shape):
+    """Undrifted pixel (x, y) seen at every pixel of a drifted image: (2, H, W) array.
+
+    Pixel ``q`` of the drifted image, scanned at row ``q_y``, shows the undrifted position
+    ``D⁻¹(q − s(q_y))`` with ``D`` the stage similarity and ``s`` the scan offset.
+    """
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(float)
+    sx, sy = _scan_offset(drift, vv, h)
+    mi = np.linalg.inv(_stage_matrix(drift, shape))
+    x, y = uu - sx, vv - sy
+    return np.stack([mi[0, 0] * x + mi[0, 1] * y + mi[0, 2], mi[1, 0] * x + mi[1, 1] * y + mi[1, 2]])
+
+
+def drifted_positions(drift, pts_px, shape):
+    """Where undrifted pixel positions ``(N, 2)`` appear in the drifted image (inverse of
+    :func:`drift_pixel_map`; the scan offset depends on the row reached, solved by
+    fixed-point iteration)."""
+    p = np.asarray(pts_px, float)
+    m = _stage_matrix(drift, shape)
+    q0 = p @ m[:2, :2].T + m[:2, 2]
+    q = q0.copy()
+    for _ in range(20):
+        sx, sy = _scan_offset(drift, q[:, 1], shape[0])
+        q = q0 + np.column_stack([sx, sy])
+    return q
 
 
 def strain_fields(scene, x_um, y_um, h_um=1e-3):
@@ -707,7 +795,8 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
                     noise=0.01, frame_noise=0.012, early_contrast=0.3, write_block=True,
                     block_size=(768, 1024), tilt_in_toml=True, tilt_in_metadata=True,
                     name=None, overwrite=False, progress=True, texture="speckle", detector=None,
-                    scene=None, blur_px=0.7, shading=True):
+                    scene=None, blur_px=0.7, shading=True, drift_shift_px=0.0,
+                    drift_rotation_deg=0.0, drift_scale=0.0, scan_drift_px=0.0):
     """Write a complete synthetic experiment folder with ground truth.
 
     Parameters
@@ -749,6 +838,11 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         :mod:`semlab.realtex` for real-image textures.
     blur_px, shading
         Passed to :func:`render` for every view and frame.
+    drift_shift_px, drift_rotation_deg, drift_scale, scan_drift_px : float
+        Stage drift of every series frame but the last (see :func:`stage_drift`): shift up
+        to ``drift_shift_px``, rotation up to ``±drift_rotation_deg``, magnification change up
+        to ``±drift_scale`` (0.003 = 0.3 %), and a slow scan drift up to ``scan_drift_px``
+        over a frame. All 0 (default): no drift, and no ``truth/drift.csv``.
 
     Returns
     -------
@@ -757,7 +851,10 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
     Files written (``truth/``)
     -------------------------
     ``points.csv``: point_id, x_um, y_um, z_um (end state), v{i}_x_px, v{i}_y_px per view,
-    f{n}_x_px, f{n}_y_px per frame, is_particle.
+    f{n}_x_px, f{n}_y_px per frame (in the frame's own, drifted pixels), is_particle.
+    ``drift.csv`` (with drift): per frame the stage drift (columns
+    :data:`DRIFT_TRUTH_COLUMNS`; shift of the image centre, rotation about it, scale) and
+    the scan drift reached at the last row.
     ``height_view0.npy``: (H, W) float32 z (µm) of the material seen at each view-0 pixel;
     ``view0_material.npz``: x_um, y_um, z_um maps for view 0.
     ``fields.npz``: on every other pixel of the last frame (1D ``x_px``, ``y_px`` give the grid),
@@ -816,6 +913,9 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         bar.update()
 
     cycles, f_frac, g_frac = _series_schedule(n_frames)
+    drifts = stage_drift(n_frames, drift_shift_px, drift_rotation_deg, drift_scale, scan_drift_px,
+                         np.random.default_rng(seed + 2000))
+    drifted = any((drift_shift_px, drift_rotation_deg, drift_scale, scan_drift_px))
     frame_files = []
     for n in range(n_frames):
         contrast = early_contrast + (1 - early_contrast) * f_frac[n]
@@ -824,7 +924,7 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         img, _, _ = render(scene, size, 0.0, height_scale=g_frac[n],
                            disp_fraction_left=1.0 - f_frac[n], contrast=contrast,
                            noise=0.0 if det else frame_noise, gain=gain, offset=offset, rng=rng,
-                           blur_px=blur_px, shading=shading)
+                           blur_px=blur_px, shading=shading, drift=drifts[n] if drifted else None)
         fpath = out / "series" / f"frame_{n:03d}.tif"
         write_tiff(fpath, digitise(img), pixel_size_um=s, tilt_deg=0.0, overwrite=overwrite)
         frame_files.append(fpath.relative_to(out).as_posix())
@@ -848,9 +948,14 @@ def make_experiment(out_dir, seed=0, size=(384, 512), pixel_size_um=0.03, tilts_
         cols[f"v{i}_x_px"], cols[f"v{i}_y_px"] = p[:, 0], p[:, 1]
     for n in range(n_frames):
         p = frame_positions(scene, pts_um, 1.0 - f_frac[n], size)
+        p = drifted_positions(drifts[n], p, size) if drifted else p
         cols[f"f{n}_x_px"], cols[f"f{n}_y_px"] = p[:, 0], p[:, 1]
     cols["is_particle"] = is_particle.astype(int)
     _write_csv(out / "truth" / "points.csv", cols)
+    if drifted:
+        _write_csv(out / "truth" / "drift.csv",
+                   {"frame": np.arange(n_frames),
+                    **{k: np.array([d[k] for d in drifts]) for k in DRIFT_TRUTH_COLUMNS[1:]}})
 
     if n_frames:
         # every other pixel of the last frame (f = 1 there, so pixel position = end state)

@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import GeometryError, SemlabError, TrackingError
+from .errors import SemlabError, TrackingError
 
 __all__ = [
     "Tracks",
@@ -44,7 +44,6 @@ __all__ = [
     "median_outliers",
     "shi_tomasi_seeds",
     "track_reverse",
-    "register_points",
     "tracks_to_records",
     "write_tracks_csv",
     "displacements",
@@ -99,6 +98,9 @@ class Tracks:
         Index of the reference (seed) frame, ``F - 1``.
     method : str
         ``"lk"`` or ``"subset"``.
+    registration : semlab.registration.Registration or None
+        The frame-to-reference transforms when tracking ran in the registered geometry
+        (``register=``); ``fb_error_px`` and ``sigma_px`` are then in reference pixels.
     """
 
     xy: np.ndarray
@@ -111,6 +113,7 @@ class Tracks:
     reference_frame: int
     method: str = "lk"
     params: dict = field(default_factory=dict)
+    registration: object = None
 
     @property
     def n_frames(self) -> int:
@@ -415,8 +418,14 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
                   max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
                   max_jump_px=None, subset_half_window=None, max_gap_frames=3,
-                  lk_check_px=0.2):
+                  lk_check_px=0.2, register=None):
     """Track points seeded in the last frame backwards in time to frame 0.
+
+    With ``register``, every frame is first registered to the reference by one global
+    transform (:func:`semlab.registration.register_frames`: features, RANSAC, ECC) and
+    resampled into the reference geometry, so stage drift between frames does not enter
+    the steps below; positions are mapped back and stored in each frame's own pixels, and a
+    step is valid only if its window lies inside the frame.
 
     Algorithm (for each frame ``k = F-2, F-3, ..., 0``):
 
@@ -508,6 +517,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     lk_check_px : float or None
         With ``method="lk"``: largest distance between the LK position and its IC-GN
         re-match (check 8), pixels. None: no check (the plain LK of the reference paper).
+    register : {None, "similarity", "affine", "translation"} or Registration
+        Track in the registered geometry: the transform model to estimate, or a
+        precomputed :class:`~semlab.registration.Registration` of these frames (reference
+        = last frame). None: track in the raw frames.
 
     Returns
     -------
@@ -570,6 +583,11 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
 
     F = len(frames)
     ref = F - 1
+    half = win_size // 2
+    reg, footprint = None, [None] * F
+    if register is not None:
+        from .registration import registered_frames
+        reg, frames, footprint = registered_frames(frames, register, margin_px=half + 1)
     norm, blank = [], []
     for fr in frames:
         f01, b = normalize_frame(_as_2d(fr, "frame"))
@@ -581,7 +599,6 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
 
     lk_kw = dict(winSize=(win_size, win_size), maxLevel=int(max_level),
                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-3))
-    half = win_size // 2
 
     xy = np.full((F, n, 2), np.nan)
     fb = np.full((F, n), np.nan)
@@ -679,6 +696,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         good = ok & np.isfinite(e) & (e <= fb_threshold_px)
         with np.errstate(invalid="ignore"):
             good &= np.linalg.norm(pos - last_pos, axis=1) <= max_jump
+        if footprint[k] is not None:        # the window must lie inside frame k itself
+            ri = np.round(np.nan_to_num(pos, nan=-1.0)).astype(int)
+            good &= _inside(ri.astype(float), shape0) & footprint[k][
+                np.clip(ri[:, 1], 0, shape0[0] - 1), np.clip(ri[:, 0], 0, shape0[1] - 1)]
         if min_zncc is not None:
             good &= np.isfinite(z) & (z >= min_zncc)
         if max_sigma_px is not None:
@@ -729,86 +750,12 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     params = dict(win_size=win_size, max_level=max_level, fb_threshold_px=fb_threshold_px,
                   min_zncc=min_zncc, direct_correction=direct_correction,
                   max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
-                  n_neighbours=n_neighbours, max_jump_px=max_jump, max_gap_frames=max_gap_frames)
+                  n_neighbours=n_neighbours, max_jump_px=max_jump, max_gap_frames=max_gap_frames,
+                  register=None if reg is None else reg.model)
+    if reg is not None:
+        xy = reg.to_frames(xy)            # back into each frame's own pixels
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
-                  reference_frame=ref, method=method, params=params)
-
-
-# ----------------------------------------------------------------------------- registration
-
-def register_points(src_img, dst_img, pts, model="affine", ratio=0.75, ransac_threshold_px=2.0,
-                    min_matches=6):
-    """Map points of one image into another by SIFT matching and a RANSAC 2D transform.
-
-    Used to bring points found in end-state stereo view 0 into the last frame of the series
-    (the views may differ by stage tilt, i.e. x-scaling by cos θ, shift and scale).
-
-    Parameters
-    ----------
-    src_img, dst_img : (H, W) arrays
-    pts : (N, 2) array of (x, y) pixels in ``src_img``
-    model : {"affine", "similarity"}
-        ``cv2.estimateAffine2D`` (6 dof) or ``cv2.estimateAffinePartial2D`` (4 dof).
-    ratio : float
-        Lowe's ratio-test threshold (Lowe 2004, sec. 7.1).
-    ransac_threshold_px : float
-        RANSAC inlier threshold, pixels.
-    min_matches : int
-        Fewest inlier matches accepted.
-
-    Returns
-    -------
-    mapped : (N, 2) array of (x, y) pixels in ``dst_img``
-    A : (2, 3) array with ``[x', y']ᵀ = A @ [x, y, 1]ᵀ``
-    residual_px : float
-        RMS transfer residual of the RANSAC inlier matches, pixels.
-
-    Raises
-    ------
-    GeometryError
-        Too few matches (different scenes, blank image) or unknown model.
-    """
-    if model not in ("affine", "similarity"):
-        raise GeometryError(f"model must be 'affine' or 'similarity', got {model!r}")
-    pts = np.asarray(pts, float)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise GeometryError(f"pts must be an (N, 2) array of (x, y) pixels, got shape {pts.shape}")
-    imgs = []
-    for name, im in (("src_img", src_img), ("dst_img", dst_img)):
-        f01, b = normalize_frame(_as_2d(im, name))
-        if b:
-            raise GeometryError(f"{name} is blank: no features to register")
-        imgs.append(_to_u8(f01))
-    sift = cv2.SIFT_create()
-    k1, d1 = sift.detectAndCompute(imgs[0], None)
-    k2, d2 = sift.detectAndCompute(imgs[1], None)
-    if d1 is None or d2 is None or len(k1) < min_matches or len(k2) < min_matches:
-        raise GeometryError(f"too few SIFT features ({0 if d1 is None else len(k1)} and "
-                            f"{0 if d2 is None else len(k2)}) to register the images: are they "
-                            "views of the same area?")
-    matches = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)
-    good = [m[0] for m in matches if len(m) == 2 and m[0].distance < ratio * m[1].distance]
-    if len(good) < min_matches:
-        raise GeometryError(f"only {len(good)} SIFT matches pass the ratio test (need "
-                            f"{min_matches}): the images may not show the same area")
-    a = np.float32([k1[m.queryIdx].pt for m in good])
-    b = np.float32([k2[m.trainIdx].pt for m in good])
-    est = cv2.estimateAffine2D if model == "affine" else cv2.estimateAffinePartial2D
-    A, inl = est(a, b, method=cv2.RANSAC, ransacReprojThreshold=float(ransac_threshold_px),
-                 maxIters=5000, confidence=0.999)
-    if A is None or inl is None or int(inl.sum()) < min_matches:
-        raise GeometryError(f"RANSAC found {0 if inl is None else int(inl.sum())} inliers among "
-                            f"{len(good)} matches (need {min_matches}): registration failed")
-    inl = inl.ravel().astype(bool)
-    # refine on the inliers by least squares
-    A2, _ = est(a[inl], b[inl], method=cv2.LMEDS) if inl.sum() >= 6 else (A, None)
-    if A2 is not None:
-        A = A2
-    A = A.astype(float)
-    r = a[inl] @ A[:, :2].T + A[:, 2] - b[inl]
-    residual = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
-    mapped = pts @ A[:, :2].T + A[:, 2]
-    return mapped, A, residual
+                  reference_frame=ref, method=method, params=params, registration=reg)
 
 
 # ----------------------------------------------------------------------------- records / csv

@@ -9,8 +9,9 @@ import pytest
 from scipy import ndimage
 
 from semlab.errors import GeometryError, SemlabError, TrackingError
+from semlab.registration import Transform2D, fit_transform
 from semlab.tracking import (TRACKS_CSV_COLUMNS, Tracks, TrackingWarning, displacement_history,
-                             displacements, median_outliers, normalize_frame, register_points,
+                             displacements, median_outliers, normalize_frame,
                              shi_tomasi_seeds, track_reverse, tracks_to_records,
                              write_tracks_csv)
 
@@ -184,20 +185,6 @@ def test_median_outliers_finds_a_jump():
     assert bad[17] and bad.sum() <= 3
 
 
-def test_register_points_recovers_tilt_like_affine():
-    rng = np.random.default_rng(3)
-    tex, _ = _texture(rng, (240, 280), pad=0, sigma=1.5)
-    src = (tex - tex.min()) / np.ptp(tex) * 200
-    A_true = np.array([[np.cos(np.deg2rad(10)), 0.0, 4.5], [0.0, 1.0, -3.0]])   # x-scaling + shift
-    dst = cv2.warpAffine(src.astype(np.float32), A_true, (280, 240), flags=cv2.INTER_CUBIC)
-    pts = rng.uniform(60, 180, (10, 2))
-    mapped, A, res = register_points(src, dst, pts)
-    assert np.abs(mapped - (pts @ A_true[:, :2].T + A_true[:, 2])).max() < 0.2
-    assert res < 1.0 and A.shape == (2, 3)
-    with pytest.raises(GeometryError):
-        register_points(src, np.zeros_like(src), pts)
-
-
 def test_normalize_frame_invariant_to_gain_and_offset():
     img = np.random.default_rng(0).normal(size=(32, 32))
     a, _ = normalize_frame(img)
@@ -264,3 +251,64 @@ def test_lk_steps_are_checked_against_a_subset_match(tmp_path):
         if check is not None:
             assert tr.valid[:-1].any()
     assert bad[None] > 0 and bad[0.2] == 0
+
+
+def _drift(k, F):
+    """Stage drift of frame k: a similarity about the centre of the 180x150 frames, the
+    last frame being the reference (identity)."""
+    if k == F - 1:
+        return np.eye(3)
+    rng = np.random.default_rng(40 + k)
+    a = rng.uniform(0, 2 * np.pi)
+    t = np.deg2rad(rng.uniform(-1.2, 1.2))
+    s = 1 + rng.uniform(-0.003, 0.003)
+    c = np.array([89.5, 74.5])
+    A = s * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    m = np.eye(3)
+    m[:2, :2] = A
+    m[:2, 2] = c + rng.uniform(20, 25) * np.array([np.cos(a), np.sin(a)]) - A @ c
+    return m
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_register_tracks_through_stage_drift(series):
+    """Frames shifted by 20-25 px, rotated by up to 1.2° and re-magnified by up to 0.3 %:
+    raw tracking loses the tracks, tracking in the registered geometry keeps about as many
+    as without drift, positions in each frame's own pixels, no valid step 0.5 px off."""
+    frames, seeds, true_xy = series
+    F = len(frames)
+    drifted, true_d = [], np.empty_like(true_xy)
+    for k in range(F):
+        m = _drift(k, F)
+        drifted.append(cv2.warpAffine(frames[k].astype(np.float32), m[:2], (180, 150),
+                                      flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT))
+        true_d[k] = true_xy[k] @ m[:2, :2].T + m[:2, 2]
+    h, w = frames[0].shape
+    keep = np.all((true_d[..., 0] > 12) & (true_d[..., 0] < w - 13) & (true_d[..., 1] > 12)
+                  & (true_d[..., 1] < h - 13), axis=0)
+    seeds, true_xy, true_d = seeds[keep], true_xy[:, keep], true_d[:, keep]
+    base = track_reverse(frames, seeds, progress=False)
+    tr = track_reverse(drifted, seeds, progress=False, register="similarity")
+    assert tr.registration is not None and tr.registration.model == "similarity"
+    for k in range(F - 1):
+        # the registration holds the drift and the material's own mean motion (which no
+        # image registration tells apart; up to 2 px here, non-uniform): the accuracy of the
+        # drift itself is tested in test_registration.py
+        Tt = fit_transform(true_xy[-1], true_d[k], "similarity")
+        assert tr.registration.transforms[k].distance(Tt, (h, w)) < 1.5, k
+        assert Transform2D(_drift(k, F)).distance(Transform2D.identity(), (h, w)) > 15
+    err = np.linalg.norm(tr.xy - true_d, axis=2)
+    assert np.array_equal(tr.xy[-1], seeds)
+    assert not np.any(tr.valid & ~(err < 0.5))
+    assert tr.valid[1:-1].mean() >= 0.8 * base.valid[1:-1].mean() > 0.5
+    e0 = np.linalg.norm(base.xy - true_xy, axis=2)
+    both = tr.valid[1] & base.valid[1]
+    assert abs(np.sqrt(np.mean(err[1][both] ** 2)) - np.sqrt(np.mean(e0[1][both] ** 2))) < 0.03
+    with pytest.raises(TrackingError):      # the raw frames cannot be tracked (motion > window)
+        track_reverse(drifted, seeds, progress=False)
+
+
+def test_register_rejects_unknown_model(series):
+    frames, seeds, _ = series
+    with pytest.raises(GeometryError, match="model"):
+        track_reverse(frames, seeds, progress=False, register="projective")
