@@ -31,6 +31,13 @@ def _size(text):
     return h, w
 
 
+def _texture(text):
+    if text in ("speckle", "polished", "featureless") or (text.startswith("real:") and text[5:]):
+        return text
+    raise argparse.ArgumentTypeError(f"expected speckle, polished, featureless or real:NAME "
+                                     f"(fei, quartz, pollen or an image path), got {text!r}")
+
+
 def _cmd_info(args):
     from .experiment import load
 
@@ -54,10 +61,16 @@ def _cmd_synth(args):
     elif args.dose is not None or args.scan_jitter:
         raise SemlabError("--dose and --scan-jitter need the detector noise model: add "
                           "--noise realistic (or --noise low)")
-    path = make_experiment(args.out, seed=args.seed, size=args.size, pixel_size_um=args.pixel_size,
-                           tilts_deg=args.tilts, n_frames=args.frames, n_clicks=args.clicks,
-                           click_noise_px=args.click_noise, slip_um=args.slip,
-                           texture=args.texture, detector=detector, progress=not args.quiet)
+    kw = dict(seed=args.seed, pixel_size_um=args.pixel_size, tilts_deg=args.tilts,
+              n_frames=args.frames, n_clicks=args.clicks, click_noise_px=args.click_noise,
+              slip_um=args.slip, detector=detector, progress=not args.quiet)
+    if args.texture.startswith("real:"):
+        from . import realtex
+
+        path = realtex.make_experiment(args.out, args.texture[5:],
+                                       size=args.size, **kw)
+    else:
+        path = make_experiment(args.out, size=args.size or (384, 512), texture=args.texture, **kw)
     print(f"wrote {path}")
     return 0
 
@@ -86,14 +99,18 @@ def build_parser():
     ps.add_argument("--tilts", type=_floats, default=[-5.0, 5.0],
                     help="stage tilts in degrees, comma-separated (default -5,5); '' for none")
     ps.add_argument("--frames", type=int, default=6, help="series frames (default 6; 0 for none)")
-    ps.add_argument("--size", type=_size, default=(384, 512), help="HxW pixels (default 384x512)")
+    ps.add_argument("--size", type=_size, default=None,
+                    help="HxW pixels (default 384x512; real textures: the largest that fits, "
+                         "at most 384x512)")
     ps.add_argument("--pixel-size", type=float, default=0.03, help="µm per pixel (default 0.03)")
     ps.add_argument("--clicks", type=int, default=50, help="hand-click-like correspondences")
     ps.add_argument("--click-noise", type=float, default=0.5, help="click noise in px (default 0.5)")
     ps.add_argument("--slip", type=float, default=0.15, help="slip step across bands in µm")
-    ps.add_argument("--texture", choices=("speckle", "polished", "featureless"), default="speckle",
-                    help="texture regime (default speckle; polished: weak grains, sparse "
-                         "particles, slip lines; featureless: bands only)")
+    ps.add_argument("--texture", type=_texture, default="speckle",
+                    help="texture regime: speckle (default), polished (weak grains, sparse "
+                         "particles, slip lines), featureless (bands only), or a real SEM image "
+                         "carried by the known surface: real:fei, real:quartz, real:pollen "
+                         "(../shared/data/real_sem) or real:PATH")
     ps.add_argument("--noise", choices=("gaussian", "low", "realistic"), default="gaussian",
                     help="gaussian: additive noise, 16-bit (default); low/realistic: SE shot "
                          "noise for a dose, per-image gain/offset, 8-bit with saturation")

@@ -203,3 +203,19 @@ def test_make_experiment_on_the_fei_texture(tmp_path):
     np.testing.assert_allclose(p[:, 0], t["v1_x_px"], atol=1e-9)
     rows = np.genfromtxt(out / "annotations" / "correspondences.csv", delimiter=",", names=True)
     assert len(rows) == 10
+
+
+def test_cli_synth_real_texture(tmp_path, capsys):
+    shared_path("real_sem", realtex.SOURCES["pollen"])
+    from semlab.cli import main
+    from semlab.experiment import load
+
+    out = tmp_path / "p"
+    assert main(["synth", str(out), "--texture", "real:pollen", "--size", "64x96", "--frames",
+                 "2", "--clicks", "5", "--noise", "low", "--quiet"]) == 0
+    exp = load(out)
+    assert exp.stereo.shape == (64, 96) and len(exp.series.frame_paths) == 2
+    assert json.loads((out / "truth" / "realtex.json").read_text())["source"] == "pollen"
+    with pytest.raises(SystemExit):
+        main(["synth", str(tmp_path / "q"), "--texture", "glossy", "--quiet"])
+    assert "expected speckle" in capsys.readouterr().err
