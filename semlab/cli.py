@@ -78,6 +78,10 @@ def _cmd_synth(args):
 def _cmd_run(args):
     from .report import run
 
+    if args.scheduler:
+        from .parallel import set_default_scheduler
+
+        set_default_scheduler(args.scheduler)   # the notebooks' kernels inherit it
     only = [s.strip() for s in args.only.split(",")] if args.only else None
     out = run(args.experiment, args.out, force=args.force, only=only, progress=not args.quiet)
     print(f"results in {out}")
@@ -127,6 +131,9 @@ def build_parser():
     pr.add_argument("--force", action="store_true", help="write into a non-empty --out folder")
     pr.add_argument("--only", default="", help="comma-separated notebook numbers, e.g. 04,05")
     pr.add_argument("--quiet", action="store_true")
+    pr.add_argument("--scheduler", default="",
+                    help="dask.distributed scheduler address tcp://HOST:PORT to run the tiled "
+                         "matching and tracking on (default: a local cluster on this machine)")
     pr.set_defaults(func=_cmd_run)
     return p
 

@@ -427,7 +427,7 @@ def _spline_gradients(coef):
 def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affine",
                 max_iter=30, tol_px=1e-4, init_warp=None, *, smooth_sigma_px=0.0,
                 subset_offsets=None, ref_prefiltered=None, cur_prefiltered=None,
-                noise_sigma=None, progress=False):
+                noise_sigma=None, progress=False, coef_offset=None):
     """Sub-pixel subset matching by inverse-compositional Gauss–Newton with ZNSSD.
 
     For each point, the ``(2h+1)²`` subset of ``ref_img`` centred on the pixel nearest to
@@ -488,6 +488,12 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         residual variance instead (no measurement; it also counts model misfit).
     progress : bool
         Show a tqdm bar over chunks of subsets.
+    coef_offset : float, optional
+        Constant removed from the current image's B-spline coefficients before they are
+        rounded to float32 (default: their mean; the zero-normalised criterion ignores it).
+        A tile of a large image (:mod:`semlab.parallel`) passes the whole image's value so
+        that the float32 rounding, hence the result, is the untiled one to ~1e-12 px
+        (with its own mean: ~4e-8 px).
 
     Returns
     -------
@@ -582,7 +588,8 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     # Flat arrays for np.take gathers: reference values and gradients, and the current
     # image's coefficients padded by 2 (mirror), in float64 for the separable translation
     # path and as a float32 pair table for general warps (:func:`_bspline_sample`).
-    cpad = np.pad(ccoef - ccoef.mean(), 2, mode="reflect")
+    offset = ccoef.mean() if coef_offset is None else float(coef_offset)
+    cpad = np.pad(ccoef - offset, 2, mode="reflect")
     roff = (xi[1] * ref.shape[1] + xi[0]).astype(np.intp)
     ctx = dict(ref_flat=np.ascontiguousarray(ref).ravel(), rgx_flat=rgx.ravel(),
                rgy_flat=rgy.ravel(), ref_w=ref.shape[1], roff=roff,

@@ -1,0 +1,204 @@
+"""Tiles on dask.distributed: tiled dense IC-GN and tracking equal the untiled runs, also on
+a cluster started on loopback inside the test; the scheduler argument of the API and CLI."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab import parallel
+from semlab.errors import SemlabError
+from semlab.subset import icgn_refine
+from semlab.tracking import normalize_frame, shi_tomasi_seeds, track_reverse
+
+
+def _pair(h=300, w=420, seed=0):
+    rng = np.random.default_rng(seed)
+    img = ndimage.gaussian_filter(rng.normal(size=(h + 40, w + 40)), 2.0) * 50 + 100
+    ref = img[20:20 + h, 20:20 + w]
+    # a smooth parallax: 1.3 px in x, -0.7 px in y, plus a slow wave
+    yy, xx = np.mgrid[0:h + 40, 0:w + 40].astype(float)
+    cur = ndimage.map_coordinates(img, [yy - 0.7 + 0.3 * np.sin(xx / 50), xx + 1.3], order=3,
+                                  mode="mirror")[20:20 + h, 20:20 + w]
+    cur = cur + rng.normal(0, 0.5, cur.shape)
+    xs, ys = np.arange(5, w - 5, 7.0), np.arange(5, h - 5, 7.0)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.column_stack([gx.ravel(), gy.ravel()])
+    guess = pts + [1.3, -0.7] + rng.normal(0, 0.3, pts.shape)
+    pts[3] = np.nan                                        # a NaN input point
+    return ref, cur, pts, guess
+
+
+def _series(h=256, w=352, n_frames=4, seed=0):
+    rng = np.random.default_rng(seed)
+    base = ndimage.gaussian_filter(rng.normal(size=(h, w)), 1.5)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    frames = []
+    for k in range(n_frames):
+        a = (n_frames - 1 - k) / (n_frames - 1)           # motion grows towards the end
+        ux = a * (3.0 * np.sin(yy / 90.0) + 0.01 * xx)
+        uy = a * 2.0 * np.cos(xx / 70.0)
+        im = ndimage.map_coordinates(base, [yy + uy, xx + ux], order=3, mode="mirror")
+        # brightness and contrast drift between frames, and noise
+        frames.append((im * (0.6 + 0.1 * k) + 0.05 * k) * 100 + rng.normal(0, 2, (h, w)) + 1000)
+    return frames
+
+
+def _assert_same_subsets(a, b, pos_tol):
+    assert np.array_equal(a.converged, b.converged)
+    assert np.array_equal(a.reason, b.reason)
+    assert np.array_equal(a.n_iter, b.n_iter)
+    ok = a.converged
+    d = np.abs(a.pts[ok] - b.pts[ok]).max(axis=1)
+    assert d.max() <= pos_tol
+    assert np.abs(a.warp[ok] - b.warp[ok]).max() <= pos_tol
+    assert np.abs(a.zncc - b.zncc).max() <= 1e-9
+    assert np.abs(a.sigma_px[ok] - b.sigma_px[ok]).max() <= 1e-9
+    assert np.abs(a.residual_ratio[ok] - b.residual_ratio[ok]).max() <= 1e-6
+    assert np.array_equal(a.noise_sigma, b.noise_sigma)
+    assert np.isnan(b.pts[~ok]).all()
+    return d
+
+
+# ------------------------------------------------------------------------------ tiles
+def test_plan_tiles_cover_the_image_once():
+    tiles = parallel.plan_tiles((300, 420), 128)
+    assert len(tiles) == 3 * 4
+    cover = np.zeros((300, 420), int)
+    for t in tiles:
+        cover[t.y0:t.y1, t.x0:t.x1] += 1
+    assert (cover == 1).all()
+    for bad in (100, 32, 128.5, True):
+        with pytest.raises(SemlabError, match="tile_px"):
+            parallel.plan_tiles((300, 420), bad)
+
+
+@pytest.mark.parametrize("smooth", [0.0, 0.8])
+def test_tiled_icgn_equals_untiled(smooth):
+    ref, cur, pts, guess = _pair()
+    init = np.zeros((len(pts), 6))
+    init[:, 1] = 0.01
+    a = icgn_refine(ref, cur, pts, guess, half_window=10, smooth_sigma_px=smooth,
+                    init_warp=init)
+    b = parallel.tiled_icgn(ref, cur, pts, guess, half_window=10, smooth_sigma_px=smooth,
+                            init_warp=init, tile_px=128)       # 3 × 4 tiles
+    assert a.converged.sum() > 0.9 * len(pts)
+    assert {"subset leaves the image", "NaN input point"} <= set(a.reason)
+    d = _assert_same_subsets(a, b, 2e-8)
+    # the float32 spline samples of a tile see coordinates 2-8x smaller, rounded differently:
+    # a few subsets differ by up to ~1e-8 px, the others by ~1e-13 px
+    assert np.median(d) <= 1e-12
+
+
+def test_tiled_icgn_single_tile_is_icgn_refine(monkeypatch):
+    monkeypatch.delenv(parallel.SCHEDULER_ENV, raising=False)
+    ref, cur, pts, guess = _pair(h=120, w=160)
+    a = icgn_refine(ref, cur, pts, guess)
+    b = parallel.tiled_icgn(ref, cur, pts, guess, tile_px=1024)
+    assert np.array_equal(a.pts, b.pts, equal_nan=True)
+
+
+def test_pinned_crop_keeps_the_frame_stretch():
+    f = _series(n_frames=2)[0]
+    f[10, 10] = np.nan
+    full, _ = normalize_frame(f)
+    lo, hi, blank = parallel._stretch(f, "frame 0")
+    assert not blank and lo < hi
+    y0, y1, x0, x1 = 32, 200, 48, 300            # a crop with another intensity histogram
+    for side in ("top", "bottom", "left", "right"):
+        thick = parallel._strip_thickness((y1 - y0, x1 - x0), side)
+        c, _ = normalize_frame(parallel._pinned_crop(f[y0:y1, x0:x1], lo, hi, side, thick))
+        c = {"top": c[thick:], "bottom": c[:-thick], "left": c[:, thick:],
+             "right": c[:, :-thick]}[side]
+        assert np.array_equal(c, full[y0:y1, x0:x1])
+
+
+@pytest.mark.parametrize("method,pos_tol,median_tol", [("lk", 2e-3, 1e-4),
+                                                       ("subset", 5e-5, 1e-7)])
+def test_tiled_tracking_equals_untiled(method, pos_tol, median_tol):
+    frames = _series()
+    seeds = shi_tomasi_seeds(frames[-1], quality=0.05, max_corners=600)
+    a = track_reverse(frames, seeds, method=method, progress=False)
+    b = parallel.tiled_track_reverse(frames, seeds, method=method, tile_px=128,
+                                     max_motion_px=8, halo_px=48, progress=False)
+    assert a.valid[:-1].mean() > 0.8
+    assert np.array_equal(a.valid, b.valid)
+    assert np.array_equal(a.gap_frames, b.gap_frames)
+    assert np.array_equal(np.isnan(a.xy), np.isnan(b.xy))
+    # LK positions are float32 (OpenCV): a tile's smaller coordinates round differently,
+    # within LK's own 1e-3 px stopping tolerance (measured: max 1.1e-3, median 3e-5 px);
+    # IC-GN subsets: the spline table rounded relative to the tile's own level (measured:
+    # max 2e-5, median 1.6e-8 px)
+    d = np.abs(a.xy - b.xy).max(axis=2)[:-1]
+    assert np.nanmax(d) <= pos_tol and np.nanmedian(d) <= median_tol
+    assert np.nanmax(np.abs(a.zncc - b.zncc)) <= 1e-3
+    assert b.params == a.params and b.method == a.method
+
+
+# ------------------------------------------------------------------------------ cluster
+@pytest.fixture(scope="module")
+def loopback_cluster():
+    """A dask.distributed cluster on 127.0.0.1: a scheduler and two worker processes."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0",
+                      worker_dashboard_address="127.0.0.1:0") as cluster:
+        yield cluster.scheduler_address
+
+
+def test_cluster_runs_equal_the_local_run(loopback_cluster, monkeypatch, capsys):
+    monkeypatch.delenv(parallel.SCHEDULER_ENV, raising=False)
+    assert loopback_cluster.startswith("tcp://127.0.0.1:")
+    ref, cur, pts, guess = _pair()
+    local = parallel.tiled_icgn(ref, cur, pts, guess, tile_px=128)
+    remote = parallel.tiled_icgn(ref, cur, pts, guess, tile_px=128, scheduler=loopback_cluster,
+                                 progress=True)
+    # the same tiles computed in other processes: the same numbers, bit for bit
+    for f in ("pts", "warp", "zncc", "sigma_px"):
+        assert np.array_equal(getattr(local, f), getattr(remote, f), equal_nan=True)
+    assert np.array_equal(local.reason, remote.reason)
+    _assert_same_subsets(icgn_refine(ref, cur, pts, guess), remote, 2e-8)
+    assert "IC-GN tiles" in capsys.readouterr().err          # the progress bar
+
+    frames = _series(n_frames=3)
+    seeds = shi_tomasi_seeds(frames[-1], quality=0.05, max_corners=300)
+    kw = dict(tile_px=128, max_motion_px=8, halo_px=48)
+    t_local = parallel.tiled_track_reverse(frames, seeds, progress=False, **kw)
+    # the address through the environment, as `semlab run --scheduler` passes it on
+    parallel.set_default_scheduler(loopback_cluster)
+    t_remote = parallel.tiled_track_reverse(frames, seeds, progress=True, **kw)
+    assert "tracking tiles" in capsys.readouterr().err
+    assert np.array_equal(t_local.xy, t_remote.xy, equal_nan=True)
+    assert np.array_equal(t_local.valid, t_remote.valid)
+    # with a cluster asked for, even a one-tile image goes there (and gives the same result)
+    small = parallel.tiled_icgn(ref[:100, :100], cur[:100, :100], pts[:20], guess[:20])
+    assert np.array_equal(small.pts, icgn_refine(ref[:100, :100], cur[:100, :100], pts[:20],
+                                                 guess[:20]).pts, equal_nan=True)
+    parallel.set_default_scheduler("")
+    import os
+
+    assert parallel.SCHEDULER_ENV not in os.environ
+
+
+def test_bad_scheduler_addresses(monkeypatch):
+    monkeypatch.delenv(parallel.SCHEDULER_ENV, raising=False)
+    with pytest.raises(SemlabError, match="tcp://HOST:PORT"):
+        parallel.set_default_scheduler("127.0.0.1:8786")
+    monkeypatch.setattr(parallel, "_CONNECT_TIMEOUT", "1s")
+    with pytest.raises(SemlabError, match="no dask scheduler answers at tcp://127.0.0.1:9"):
+        parallel.set_default_scheduler("tcp://127.0.0.1:9")
+    import os
+
+    assert parallel.SCHEDULER_ENV not in os.environ
+
+
+def test_cli_run_takes_a_scheduler(monkeypatch, tmp_path, capsys):
+    from semlab.cli import build_parser, main
+
+    monkeypatch.delenv(parallel.SCHEDULER_ENV, raising=False)
+    args = build_parser().parse_args(["run", "exp", "--out", "o", "--scheduler", "tcp://h:1"])
+    assert args.scheduler == "tcp://h:1"
+    assert build_parser().parse_args(["run", "exp", "--out", "o"]).scheduler == ""
+    assert main(["run", str(tmp_path), "--out", str(tmp_path / "o"),
+                 "--scheduler", "nonsense"]) == 2
+    assert "tcp://HOST:PORT" in capsys.readouterr().err
