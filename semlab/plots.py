@@ -548,3 +548,102 @@ def show_picked_points(images, pts, point_id, titles=None, pixel_size_um=None):
                    points=pts[:, k], labels=point_id, pixel_size_um=pixel_size_um)
     fig.tight_layout()
     return fig
+
+
+# ------------------------------------------------------------------ dense height maps
+def show_heightmap_panels(z_um, sigma_um, pixel_size_um=None, size=3.6):
+    """Three panels: the height map, its 1σ (nm) and the measured mask.
+
+    Returns the figure (axes: map, σ, mask).
+    """
+    plt = _plt()
+    fig, axs = plt.subplots(1, 3, figsize=(3 * size + 1.5, size * 0.8), constrained_layout=True)
+    show_height_map(z_um, ax=axs[0], pixel_size_um=pixel_size_um)
+    sg = np.asarray(sigma_um, float) * 1e3
+    hi = float(np.nanpercentile(sg, 99)) if np.isfinite(sg).any() else 1.0
+    im = axs[1].imshow(sg, cmap="magma", vmin=0, vmax=hi or 1.0)
+    fig.colorbar(im, ax=axs[1], label="1σ (nm)")
+    axs[1].set_title("height 1σ (nm)")
+    valid = np.isfinite(np.asarray(z_um, float))
+    axs[2].imshow(valid, cmap="gray", vmin=0, vmax=1)
+    axs[2].set_title(f"measured: {100 * valid.mean():.1f} %")
+    for ax in axs[1:]:
+        ax.set_xlabel("x (px)")
+        ax.set_ylabel("y (px)")
+    return fig
+
+
+def show_hillshade(z_um, pixel_size_um, ax=None, azimuth_deg=315.0, altitude_deg=45.0,
+                   z_factor=5.0, title=None):
+    """Hill-shaded relief of a height map (heights exaggerated ``z_factor`` times);
+    not-measured pixels in red."""
+    from .heightmap import hillshade
+
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 4.5))
+    hs = hillshade(z_um, pixel_size_um, azimuth_deg, altitude_deg, z_factor)
+    rgb = np.dstack([hs, hs, hs])
+    rgb[~np.isfinite(hs)] = (0.8, 0.1, 0.1)
+    ax.imshow(np.nan_to_num(rgb))
+    ax.set_title(title or f"hill shade (z × {z_factor:g}, light from {azimuth_deg:g}°)")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    add_scale_bar(ax, np.shape(z_um), pixel_size_um)
+    return ax
+
+
+def plot_profile(profile, ax=None, label=None, color=None, x_key="distance_um"):
+    """A height profile (dict with ``distance_um``, ``z_um``, ``sigma_um``, as returned by
+    :func:`semlab.metrology.profile_between` or :func:`~semlab.metrology.band_profile`)
+    with its ±1σ band; heights in nm."""
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 3))
+    x = np.asarray(profile[x_key], float)
+    z = np.asarray(profile["z_um"], float) * 1e3
+    s = np.asarray(profile["sigma_um"], float) * 1e3
+    (line,) = ax.plot(x, z, color=color, label=label, lw=1.2)
+    ax.fill_between(x, z - s, z + s, color=line.get_color(), alpha=0.25, lw=0)
+    ax.set_xlabel("distance (µm)" if x_key == "distance_um" else x_key)
+    ax.set_ylabel("z (nm)")
+    ax.axhline(0, color="0.6", lw=0.6)
+    if label:
+        ax.legend(fontsize=8)
+    return ax
+
+
+def show_bands(z_um, bands, ax=None, pixel_size_um=None):
+    """The height map with each band trace drawn and labelled by its id."""
+    ax = show_height_map(z_um, ax=ax, pixel_size_um=pixel_size_um, title="bands")
+    for b in bands:
+        (x0, y0), (x1, y1) = b.p0_px, b.p1_px
+        ax.plot([x0, x1], [y0, y1], "k-", lw=1)
+        ax.text((x0 + x1) / 2, (y0 + y1) / 2, str(b.band_id), fontsize=8,
+                bbox=dict(fc="w", alpha=0.7, lw=0))
+    ax.set_xlim(-0.5, np.shape(z_um)[1] - 0.5)
+    ax.set_ylim(np.shape(z_um)[0] - 0.5, -0.5)
+    return ax
+
+
+def plot_band_profiles(profiles, ncols=3, size=3.2):
+    """One panel per band profile (:func:`semlab.metrology.band_profile`): the mean profile
+    across the trace with ±1σ, the baseline, and extrusion/intrusion/width in the title."""
+    plt = _plt()
+    n = max(1, len(profiles))
+    ncols = min(ncols, n)
+    nrows = -(-n // ncols)
+    fig, axs = plt.subplots(nrows, ncols, figsize=(ncols * size, nrows * size * 0.75),
+                            squeeze=False, constrained_layout=True)
+    for ax, p in zip(axs.ravel(), profiles):
+        plot_profile(p, ax=ax)
+        if np.isfinite(p.get("baseline_um", np.nan)):
+            ax.axhline(p["baseline_um"] * 1e3, color="k", ls=":", lw=0.8)
+        ax.set_title(f"band {p['band'].band_id}: +{1e3 * p['extrusion_um']:.0f}±"
+                     f"{1e3 * p['extrusion_err_um']:.0f} / −{1e3 * p['intrusion_um']:.0f}±"
+                     f"{1e3 * p['intrusion_err_um']:.0f} nm, w {p['width_um']:.2f} µm",
+                     fontsize=8)
+        ax.set_xlabel("across the trace (µm)")
+    for ax in axs.ravel()[len(profiles):]:
+        ax.set_visible(False)
+    return fig

@@ -1,0 +1,716 @@
+"""Dense height maps on the view-0 pixel grid: every pixel matched, edges kept, σ per pixel.
+
+The chain (one function per stage, :func:`dense_parallax` runs them on a window):
+
+1. **Initial guess** (:func:`initial_guess`): where each view-0 pixel lies in view 1, from
+   DIS optical flow (Kroeger et al. 2016, ECCV) of the contrast-normalised views — after a
+   dense prior interpolated from sparse seed matches when they are given (tall objects,
+   parallax of hundreds of pixels), as in :func:`semlab.matching.auto_match`.
+2. **Dense subsets** (:func:`semlab.subset.icgn_refine`): an affine IC-GN subset of
+   ``(2h+1)²`` pixels centred on *every* pixel, with its ZNCC and its matching σ.
+3. **σ scale** (:func:`sigma_scale`): the IC-GN σ is the noise-only error of one subset; it
+   misses interpolation bias and the view-to-view differences of SEM contrast. Its factor
+   is measured on the map itself, without any truth: second differences of three
+   *non-overlapping* subsets in a row (independent noise, a linear trend cancels) divided
+   by their predicted σ have a robust standard deviation (1.4826 MAD) equal to the factor.
+4. **Edge-preserving fusion** (:func:`fuse_shiftable`): each pixel takes the ZNCC-weighted
+   mean of the predictions of the subsets that contain it (centres within ``h − 1``, a
+   "shiftable window", Bobick & Intille 1999, IJCV 33(3)), each carried to the pixel with
+   its affine warp gradient (5×5 median of the neighbours' gradients, to cut its noise). A subset that straddles a slip-band step fits worse (lower
+   ZNCC), so at a step the pixel is given by the subsets on its own side of the step, and
+   the step is not smoothed by the full subset width. The fused 1σ is the larger of the
+   contributors' scaled matching σ and their weighted spread (which grows where the
+   subsets disagree: steps, groove walls).
+5. **Heights** (:class:`HeightModel`): under the affine camera, the height above the
+   reference plane is a linear function of the pixel positions in the two views,
+   ``z = a·(u1, v1, u0, v0, 1)``; either from the tilts (:func:`height_model_from_tilts`)
+   or fitted to the heights of the sparse points (:func:`height_model_from_points`, which
+   then uses their reference plane, so the map and ``points3d.csv`` agree).
+
+Conventions: images ``[row, col]``; points ``(x, y)`` pixels, origin at the centre of the
+top-left pixel; a region of interest ``roi = (x0, y0, x1, y1)`` is half-open in pixels of
+view 0 (columns ``x0..x1-1``, rows ``y0..y1-1``). Heights in µm, z > 0 extrusion.
+
+Tiling (see :func:`dense_parallax`): the result for a ``roi`` depends only on the images
+within ``margin_px`` of it, so tiles overlapping by ``2 · margin_px`` give the same values
+as one call on the whole image (up to the σ scale, which is measured per call).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .errors import GeometryError, ImageError, SemlabError
+
+__all__ = [
+    "DenseParams",
+    "DenseParallax",
+    "HeightModel",
+    "HeightMap",
+    "initial_guess",
+    "sigma_scale",
+    "fuse_shiftable",
+    "dense_parallax",
+    "height_model_from_tilts",
+    "height_model_from_points",
+    "dense_heights",
+    "heightmap_from_stereo",
+    "hillshade",
+    "write_heightmap_results",
+]
+
+
+@dataclass(frozen=True)
+class DenseParams:
+    """Parameters of the dense map (recorded in the results).
+
+    Attributes
+    ----------
+    half_window : int
+        Subset half size ``h`` (subsets of ``(2h+1)²`` pixels).
+    min_zncc : float
+        Subsets with a lower ZNCC do not contribute.
+    max_iter, tol_px : IC-GN iteration limit and convergence tolerance (pixels).
+    fusion_radius_px : int, optional
+        Centres of the subsets fused into a pixel lie within this radius (Chebyshev);
+        default ``h - 1``. 0 turns the fusion off (each pixel its own subset).
+    fusion_step_px : int
+        Spacing of the fused subset centres (2 = every other subset, 4× fewer terms).
+    zncc_tau : float
+        Weight of a subset ``exp(-(1 - ZNCC) / τ)`` with ``τ = zncc_tau × median(1 − ZNCC)``
+        of the map (so the selection adapts to the noise level): small values select the
+        best fitting subset (sharper steps, more noise).
+    outlier_px : float
+        A subset whose parallax differs from the median of its 5×5 neighbours by more
+        than ``max(outlier_px, 4 σ)`` is dropped.
+    """
+
+    half_window: int = 7
+    min_zncc: float = 0.8
+    max_iter: int = 30
+    tol_px: float = 1e-3
+    fusion_radius_px: int | None = None
+    fusion_step_px: int = 2
+    zncc_tau: float = 0.5
+    outlier_px: float = 0.5
+
+    def margin_px(self):
+        """Pixels around a window that its result depends on (subset + fusion reach)."""
+        r = self.half_window - 1 if self.fusion_radius_px is None else self.fusion_radius_px
+        return int(2 * self.half_window + r + 6)
+
+
+@dataclass
+class DenseParallax:
+    """Dense correspondences of view-0 pixels in view 1 (result of :func:`dense_parallax`).
+
+    Arrays are ``(h, w)`` on the view-0 pixel grid of ``roi``: element ``[i, j]`` is the
+    pixel ``(x, y) = (roi[0] + j, roi[1] + i)``.
+
+    Attributes
+    ----------
+    x1_px, y1_px : (h, w) float arrays
+        Position ``(x, y)`` of each view-0 pixel in view 1, pixels; NaN where not measured.
+    sigma_px : (h, w) float array
+        1σ error of ``x1_px`` (the parallax direction), pixels.
+    sigma_y_px : (h, w) float array
+        1σ error of ``y1_px``, pixels.
+    valid : (h, w) bool array
+    zncc : (h, w) float array
+        ZNCC of the best subset contributing to the pixel.
+    roi : (x0, y0, x1, y1) ints
+    sigma_scale : float
+        Factor applied to the IC-GN σ (:func:`sigma_scale`).
+    params : DenseParams
+    """
+
+    x1_px: np.ndarray
+    y1_px: np.ndarray
+    sigma_px: np.ndarray
+    sigma_y_px: np.ndarray
+    valid: np.ndarray
+    zncc: np.ndarray
+    roi: tuple
+    sigma_scale: float
+    params: DenseParams
+
+    def grid(self):
+        """View-0 pixel coordinates ``(x0_px, y0_px)`` of the map, two ``(h, w)`` arrays."""
+        x0, y0, x1, y1 = self.roi
+        return np.meshgrid(np.arange(x0, x1, dtype=float), np.arange(y0, y1, dtype=float))
+
+
+@dataclass(frozen=True)
+class HeightModel:
+    """Height above the reference plane as a linear function of the two views' positions.
+
+    ``z_um = coef · (x1, y1, x0, y0, 1)`` with ``(x0, y0)`` in view 0 and ``(x1, y1)`` in
+    view 1, pixels (exact for an affine camera pair). ``rms_um`` is the residual of the fit
+    (0 from tilts).
+    """
+
+    coef: tuple
+    rms_um: float = 0.0
+    source: str = "tilts"
+
+    def height(self, x1, y1, x0, y0):
+        c = self.coef
+        return c[0] * x1 + c[1] * y1 + c[2] * x0 + c[3] * y0 + c[4]
+
+    def sigma(self, sigma_x_px, sigma_y_px=0.0):
+        """1σ height (µm) from the 1σ errors of the view-1 position (pixels)."""
+        return np.hypot(self.coef[0] * sigma_x_px, self.coef[1] * sigma_y_px)
+
+
+@dataclass
+class HeightMap:
+    """Dense heights on the view-0 pixel grid.
+
+    Attributes
+    ----------
+    z_um : (h, w) float32 array
+        Height above the reference surface, µm (z > 0 extrusion), NaN where not measured.
+    sigma_um : (h, w) float32 array
+        1σ of ``z_um``, µm (NaN where not measured).
+    valid : (h, w) bool array
+    pixel_size_um : float
+    roi : (x0, y0, x1, y1)
+    parallax : DenseParallax
+    model : HeightModel
+    notes : list of str
+    """
+
+    z_um: np.ndarray
+    sigma_um: np.ndarray
+    valid: np.ndarray
+    pixel_size_um: float
+    roi: tuple
+    parallax: DenseParallax = field(repr=False)
+    model: HeightModel = None
+    notes: list = field(default_factory=list)
+
+    def metadata(self):
+        """JSON-ready description of how the map was made."""
+        return {"pixel_size_um": float(self.pixel_size_um), "roi": list(map(int, self.roi)),
+                "params": asdict(self.parallax.params),
+                "sigma_scale": float(self.parallax.sigma_scale),
+                "height_model": {"coef": list(map(float, self.model.coef)),
+                                 "rms_um": float(self.model.rms_um),
+                                 "source": self.model.source},
+                "measured_fraction": float(self.valid.mean()) if self.valid.size else 0.0,
+                "notes": list(self.notes)}
+
+
+# ------------------------------------------------------------------------------ validation
+def _as_view(img, name):
+    a = np.asarray(img)
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise ImageError(f"{name} must be a 2D image of at least 8×8 pixels, got shape {a.shape}")
+    a = a.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(a)):
+        raise ImageError(f"{name} holds NaN/inf pixels: replace them before dense matching")
+    return a
+
+
+def _check_roi(roi, shape):
+    hgt, wid = shape
+    if roi is None:
+        return (0, 0, wid, hgt)
+    r = tuple(int(v) for v in roi)
+    if len(r) != 4 or not (0 <= r[0] < r[2] <= wid and 0 <= r[1] < r[3] <= hgt):
+        raise SemlabError(f"roi must be (x0, y0, x1, y1) with 0 <= x0 < x1 <= {wid} and "
+                          f"0 <= y0 < y1 <= {hgt} (view-0 pixels, half-open), got {roi!r}")
+    return r
+
+
+def _take(a, dx, dy, fill):
+    """``out[i, j] = a[i + dy, j + dx]`` (``fill`` outside)."""
+    hgt, wid = a.shape
+    out = np.full(a.shape, fill, a.dtype)
+    if abs(dx) >= wid or abs(dy) >= hgt:
+        return out
+    y0, y1 = max(0, -dy), hgt - max(0, dy)
+    x0, x1 = max(0, -dx), wid - max(0, dx)
+    out[y0:y1, x0:x1] = a[y0 + dy:y1 + dy, x0 + dx:x1 + dx]
+    return out
+
+
+# ------------------------------------------------------------------------------ stages
+def initial_guess(view0, view1, seeds=None, half_window=7):
+    """Where every view-0 pixel lies in view 1, to about a pixel.
+
+    Parameters
+    ----------
+    view0, view1 : (H, W) arrays
+    seeds : (N, 2, 2) array, optional
+        Sparse matches ``[:, v] = (x, y)`` in view ``v`` (e.g. ``StereoResult.pts[:, :2]``);
+        with at least 6 of them, a dense prior map interpolated from them is applied first
+        (needed when the parallax is large and varies, e.g. tall objects).
+    half_window : int
+        Subset half size (sets the scale of the contrast normalisation and smoothing).
+
+    Returns
+    -------
+    guess : (H, W, 2) float array of (x, y) in view 1.
+    grad : (H, W, 4) float array of the warp gradient ``(du/dx, du/dy, dv/dx, dv/dy)``.
+    fb_err : (H, W) float array
+        Forward–backward disagreement of the flow, pixels.
+    """
+    from . import matching
+
+    hgt, wid = view0.shape
+    if seeds is not None and len(seeds) >= 6:
+        s = np.asarray(seeds, float)
+        ok = np.all(np.isfinite(s.reshape(len(s), -1)), 1)
+        M = matching._dense_prior(s[ok, 0], s[ok, 1], view0.shape, half_window)
+    else:
+        M = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    _, fwd, bwd = matching._flow_field(view0, view1, M, half_window, 2.0)
+    yy, xx = np.mgrid[0:hgt, 0:wid]
+    grid = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+    guess, init, fb = matching._flow_guess(M, fwd, bwd, grid, half_window)
+    return (guess.reshape(hgt, wid, 2), init[:, [1, 2, 4, 5]].reshape(hgt, wid, 4),
+            fb.reshape(hgt, wid))
+
+
+def sigma_scale(x1_px, sigma_px, valid, half_window):
+    """Factor between the actual and the IC-GN-predicted random error, from the map itself.
+
+    Along each row, subsets ``D = 2h + 1`` apart do not share pixels, so their noise is
+    independent. The third difference ``p₀ − 3p₁ + 3p₂ − p₃`` of the parallax of four of them
+    cancels a quadratic trend and has standard deviation ``k sqrt(σ₀² + 9σ₁² + 9σ₂² + σ₃²)``
+    if the actual errors are ``k`` times the predicted ones; ``k`` is the robust standard
+    deviation (1.4826 MAD) of the normalised differences (steps are outliers of the MAD).
+    Clipped to >= 1: the prediction is never taken to be pessimistic.
+
+    Parameters
+    ----------
+    x1_px, sigma_px : (H, W) arrays
+        Matched x position in view 1 and its predicted 1σ, pixels.
+    valid : (H, W) bool array
+    half_window : int
+
+    Returns
+    -------
+    float
+    """
+    D = 2 * int(half_window) + 1
+    p = np.where(valid, x1_px - np.arange(x1_px.shape[1])[None, :], np.nan)
+    n = p.shape[1] - 3 * D
+    if n <= 0:
+        return 1.0
+    q = [p[:, i * D:i * D + n] for i in range(4)]
+    s = [sigma_px[:, i * D:i * D + n] for i in range(4)]
+    with np.errstate(invalid="ignore"):
+        r = ((q[0] - 3 * q[1] + 3 * q[2] - q[3])
+             / np.sqrt(s[0] ** 2 + 9 * s[1] ** 2 + 9 * s[2] ** 2 + s[3] ** 2))
+    r = r[np.isfinite(r)]
+    if len(r) < 100:
+        return 1.0
+    k = 1.4826 * np.median(np.abs(r - np.median(r)))
+    return float(max(1.0, k))
+
+
+def _drop_outliers(par, sig, ok, outlier_px):
+    """Subsets whose parallax leaves the median of its 5×5 converged neighbours."""
+    p = np.where(ok, par, np.nan)
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(p - _nanmedian5(p)) > np.maximum(outlier_px, 4 * sig)
+    return ok & ~bad
+
+
+def _nanmedian5(p):
+    """Median of the finite values of each pixel's 5×5 neighbourhood (NaN if none)."""
+    stack = np.sort(np.stack([_take(p, dx, dy, np.nan) for dx in range(-2, 3)
+                              for dy in range(-2, 3)]), axis=0)       # NaNs sort last
+    n = np.isfinite(stack).sum(0)
+    lo = np.take_along_axis(stack, np.maximum(n - 1, 0)[None] // 2, 0)[0]
+    hi = np.take_along_axis(stack, (n // 2)[None], 0)[0] if stack.shape[0] else lo
+    med = 0.5 * (lo + np.where(n > 0, hi, np.nan))
+    return np.where(n > 0, med, np.nan)
+
+
+def fuse_shiftable(values, sigma, zncc, valid, gradients, radius_px, step_px=2, tau=0.01):
+    """Edge-preserving fusion of dense subset estimates ("shiftable windows").
+
+    Pixel ``p`` gets ``Σ w_q [v_q + ∇v_q · (p − q)] / Σ w_q`` over the subsets ``q`` within
+    ``radius_px`` (every ``step_px``), ``w_q = exp(-(1 − zncc_q) / tau)`` (computed relative
+    to the best subset around ``p``, which cancels in the ratio): subsets that
+    straddle a step fit worse and drop out, so the step stays sharp.
+
+    Parameters
+    ----------
+    values : (H, W, C) float array
+        Estimate of each subset centred on each pixel (e.g. the x and y parallax).
+    sigma : (H, W, C) float array
+        Their 1σ (already scaled).
+    zncc : (H, W) float array
+    valid : (H, W) bool array
+    gradients : (H, W, C, 2) float array
+        ``(∂v/∂x, ∂v/∂y)`` of each subset (e.g. its affine warp, median-filtered).
+    radius_px, step_px : int
+    tau : float
+
+    Returns
+    -------
+    fused : (H, W, C)
+    fused_sigma : (H, W, C)
+        ``max(RMS σ, spread)`` with the same weights: the contributors' errors are strongly
+        correlated (they share pixels, so averaging does not divide σ), and their weighted
+        spread, which already holds their noise, takes over where they disagree (steps,
+        groove walls).
+    best_zncc : (H, W)
+    support : (H, W) float
+        Sum of the weights (0: no contributor, not measured).
+    """
+    v = np.asarray(values, float)
+    s = np.asarray(sigma, float)
+    g = np.nan_to_num(np.asarray(gradients, float))
+    hgt, wid, nc = v.shape
+    ok = valid & np.all(np.isfinite(v), -1) & np.all(np.isfinite(s), -1) & (zncc > -1)
+    from scipy import ndimage
+
+    zq = np.where(ok, zncc, -1.0)
+    r = int(radius_px)
+    zmax = ndimage.maximum_filter(zq, size=2 * r + 1, mode="constant", cval=-1.0)
+    vz = np.where(ok[..., None], v, 0.0)
+    sz = np.where(ok[..., None], s, 0.0)
+    offs = [(dx, dy) for dy in range(-r, r + 1, max(1, step_px))
+            for dx in range(-r, r + 1, max(1, step_px))]
+    if (0, 0) not in offs:
+        offs.append((0, 0))
+    sw = np.zeros((hgt, wid))
+    s1 = np.zeros((hgt, wid, nc))
+    ss = np.zeros((hgt, wid, nc))
+    best = np.full((hgt, wid), -1.0)
+    preds = []
+    for dx, dy in offs:
+        zs = _take(zq, dx, dy, -1.0)
+        # relative to the best subset around p (no underflow; the factor cancels)
+        w = np.where(zs > -1.0, np.exp(-(zmax - zs) / max(tau, 1e-12)), 0.0)
+        pred = np.stack([_take(vz[..., c], dx, dy, 0.0) - _take(g[..., c, 0], dx, dy, 0.0) * dx
+                         - _take(g[..., c, 1], dx, dy, 0.0) * dy for c in range(nc)], -1)
+        sg = np.stack([_take(sz[..., c], dx, dy, 0.0) for c in range(nc)], -1)
+        sw += w
+        s1 += w[..., None] * pred
+        ss += w[..., None] * sg ** 2
+        best = np.maximum(best, np.where(w > 0, zs, -1.0))
+        preds.append((w, pred))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu = s1 / sw[..., None]
+        mu0 = np.nan_to_num(mu)
+        s2 = np.zeros_like(s1)
+        for w, pred in preds:
+            s2 += w[..., None] * (pred - mu0) ** 2
+        fs = np.maximum(np.sqrt(ss / sw[..., None]), np.sqrt(s2 / sw[..., None]))
+    none = sw <= 0
+    mu[none] = np.nan
+    fs[none] = np.nan
+    return mu, fs, best, sw
+
+
+def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
+                   progress=False):
+    """Dense correspondences of the view-0 pixels of ``roi`` in view 1.
+
+    Parameters
+    ----------
+    view0, view1 : (H, W) arrays
+        The two views (whole images; only the part within ``params.margin_px()`` of
+        ``roi`` in view 0, and around its guessed match in view 1, is used).
+    seeds : (N, 2, 2) array, optional
+        Sparse matches (view 0, view 1) of the whole images for the initial guess.
+    roi : (x0, y0, x1, y1), optional
+        Half-open window of view-0 pixels; default the whole image.
+    params : DenseParams, optional
+    guess : (H, W, 2) array, optional
+        Initial guess of every view-0 pixel's position in view 1 (whole-image grid);
+        overrides ``seeds``/flow (e.g. computed once for all tiles).
+    progress : bool
+
+    Returns
+    -------
+    DenseParallax
+        Arrays of shape ``(y1 - y0, x1 - x0)``.
+    """
+    from . import subset
+
+    p = params or DenseParams()
+    v0 = _as_view(view0, "view0")
+    v1 = _as_view(view1, "view1")
+    if v0.shape != v1.shape:
+        raise ImageError(f"view0 and view1 must have one shape, got {v0.shape} and {v1.shape}")
+    roi = _check_roi(roi, v0.shape)
+    h = int(p.half_window)
+    if h < 2:
+        raise SemlabError(f"half_window must be >= 2, got {p.half_window}")
+    hgt, wid = v0.shape
+    m = p.margin_px()
+    # window of view 0 with its margin
+    wx0, wy0 = max(0, roi[0] - m), max(0, roi[1] - m)
+    wx1, wy1 = min(wid, roi[2] + m), min(hgt, roi[3] + m)
+    if guess is None:
+        if seeds is None and roi != (0, 0, wid, hgt):
+            g, grad, _ = initial_guess(v0[wy0:wy1, wx0:wx1], v1[wy0:wy1, wx0:wx1], None, h)
+            g = g + np.array([wx0, wy0], float)
+        else:
+            g, grad, _ = initial_guess(v0, v1, seeds, h)
+            g, grad = g[wy0:wy1, wx0:wx1], grad[wy0:wy1, wx0:wx1]
+    else:
+        gg = np.asarray(guess, float)
+        if gg.shape != (hgt, wid, 2):
+            raise SemlabError(f"guess must be an (H, W, 2) = ({hgt}, {wid}, 2) array of view-1 "
+                              f"positions, got shape {gg.shape}")
+        g = gg[wy0:wy1, wx0:wx1]
+        grad = np.zeros(g.shape[:2] + (4,))
+    gh, gw = g.shape[:2]
+    yy, xx = np.mgrid[wy0:wy1, wx0:wx1]
+    pts = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+    gflat = g.reshape(-1, 2)
+    # view-1 window around the guesses (with room for the subset and its motion)
+    fin = np.all(np.isfinite(gflat), 1)
+    if not fin.any():
+        raise GeometryError("no finite initial guess in the window: give seeds or a guess")
+    pad = 2 * h + 8
+    cx0 = int(max(0, np.floor(gflat[fin, 0].min()) - pad))
+    cy0 = int(max(0, np.floor(gflat[fin, 1].min()) - pad))
+    cx1 = int(min(wid, np.ceil(gflat[fin, 0].max()) + pad + 1))
+    cy1 = int(min(hgt, np.ceil(gflat[fin, 1].max()) + pad + 1))
+    ref = v0[wy0:wy1, wx0:wx1]
+    cur = v1[cy0:cy1, cx0:cx1]
+    init = np.zeros((len(pts), 6))
+    init[:, [1, 2, 4, 5]] = grad.reshape(-1, 4)
+    r = subset.icgn_refine(ref, cur, pts - [wx0, wy0], gflat - [cx0, cy0], half_window=h,
+                           max_iter=p.max_iter, tol_px=p.tol_px, init_warp=init,
+                           progress=progress)
+    x1 = (r.pts[:, 0] + cx0).reshape(gh, gw)
+    y1 = (r.pts[:, 1] + cy0).reshape(gh, gw)
+    sx = r.sigma_px[:, 0].reshape(gh, gw)
+    sy = r.sigma_px[:, 1].reshape(gh, gw)
+    zn = r.zncc.reshape(gh, gw)
+    ok = r.converged.reshape(gh, gw) & (zn >= p.min_zncc) & np.isfinite(sx)
+    par = x1 - xx
+    ok = _drop_outliers(par, sx, ok, p.outlier_px)
+    k = sigma_scale(x1, sx, ok, h)
+    radius = h - 1 if p.fusion_radius_px is None else int(p.fusion_radius_px)
+    vals = np.stack([x1 - xx, y1 - yy], -1)
+    sigs = np.stack([k * sx, k * sy], -1)
+    if radius > 0:
+        wg = np.where(ok[..., None], r.warp.reshape(gh, gw, 6), np.nan)
+        grads = np.stack([np.stack([_nanmedian5(wg[..., 1]), _nanmedian5(wg[..., 2])], -1),
+                          np.stack([_nanmedian5(wg[..., 4]), _nanmedian5(wg[..., 5])], -1)], 2)
+        tau = p.zncc_tau * float(np.median(1.0 - zn[ok])) if ok.any() else 1.0
+        fused, fsig, best, support = fuse_shiftable(vals, sigs, zn, ok, grads, radius,
+                                                    p.fusion_step_px, max(tau, 1e-6))
+        valid = support > 0
+    else:
+        fused = np.where(ok[..., None], vals, np.nan)
+        fsig = np.where(ok[..., None], sigs, np.nan)
+        best, valid = np.where(ok, zn, -1.0), ok
+    # crop to the roi
+    sl = (slice(roi[1] - wy0, roi[3] - wy0), slice(roi[0] - wx0, roi[2] - wx0))
+    gx, gy = xx[sl].astype(float), yy[sl].astype(float)
+    valid = valid[sl]
+    nanv = lambda a: np.where(valid, a, np.nan)  # noqa: E731
+    return DenseParallax(x1_px=nanv(gx + fused[sl][..., 0]), y1_px=nanv(gy + fused[sl][..., 1]),
+                         sigma_px=nanv(fsig[sl][..., 0]), sigma_y_px=nanv(fsig[sl][..., 1]),
+                         valid=valid, zncc=np.where(valid, best[sl], -1.0), roi=roi,
+                         sigma_scale=k, params=p)
+
+
+# ------------------------------------------------------------------------------ heights
+def height_model_from_tilts(tilt0_deg, tilt1_deg, pixel_size_um, center_x_px=0.0):
+    """:class:`HeightModel` of an affine eucentric pair (tilt axis along image y).
+
+    ``z = s [(x1 - c) cos θ0 - (x0 - c) cos θ1] / sin(θ1 - θ0)`` (see
+    :func:`semlab.reconstruct.parallax_height`): heights above the plane ``z = 0`` of the
+    camera model, not a fitted reference plane.
+    """
+    from .reconstruct import parallax_height
+
+    c = float(center_x_px)
+    z00 = float(parallax_height(0.0, 0.0, tilt0_deg, tilt1_deg, pixel_size_um, c, c))
+    a1 = float(parallax_height(0.0, 1.0, tilt0_deg, tilt1_deg, pixel_size_um, c, c)) - z00
+    a0 = float(parallax_height(1.0, 0.0, tilt0_deg, tilt1_deg, pixel_size_um, c, c)) - z00
+    return HeightModel(coef=(a1, 0.0, a0, 0.0, z00), rms_um=0.0, source="tilts")
+
+
+def height_model_from_points(pts, z_um):
+    """Fit the :class:`HeightModel` to sparse points with known heights.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        Matched positions; views 0 and 1 are used.
+    z_um : (N,) array
+        Heights above the reference plane of those points (e.g. ``StereoResult.z_um``).
+
+    Returns
+    -------
+    HeightModel
+        Exact (``rms_um`` ~ 1e-12) when the heights come from views 0 and 1 by the affine
+        model; with more views its residual says how far the pair departs from them.
+        Least squares with a 3.5·MAD outlier cut, repeated twice.
+    """
+    P = np.asarray(pts, float)
+    z = np.asarray(z_um, float).ravel()
+    if P.ndim != 3 or P.shape[1] < 2 or P.shape[2] != 2 or len(P) != len(z):
+        raise GeometryError(f"pts must be (N, V>=2, 2) and z_um (N,), got {P.shape}, {z.shape}")
+    A = np.column_stack([P[:, 1, 0], P[:, 1, 1], P[:, 0, 0], P[:, 0, 1], np.ones(len(P))])
+    ok = np.all(np.isfinite(A), 1) & np.isfinite(z)
+    if ok.sum() < 8:
+        raise GeometryError(f"need at least 8 points with heights to fit the height model, "
+                            f"got {int(ok.sum())}")
+    for _ in range(3):
+        coef, *_ = np.linalg.lstsq(A[ok], z[ok], rcond=None)
+        res = z - A @ coef
+        mad = 1.4826 * np.median(np.abs(res[ok]))
+        new = np.isfinite(res) & (np.abs(res) <= max(3.5 * mad, 1e-9))
+        if new.sum() < 8 or np.array_equal(new, ok):
+            break
+        ok = new
+    rms = float(np.sqrt(np.mean(res[ok] ** 2)))
+    return HeightModel(coef=tuple(float(c) for c in coef), rms_um=rms, source="points")
+
+
+def dense_heights(view0, view1, tilt_deg=None, pixel_size_um=None, seeds=None, roi=None,
+                  params=None, model=None, progress=False):
+    """Dense height map (µm) of ``roi`` on the view-0 pixel grid.
+
+    Parameters
+    ----------
+    view0, view1 : (H, W) arrays
+    tilt_deg : (2,) sequence, optional
+        Stage tilts of the two views (for :func:`height_model_from_tilts`); not needed
+        with ``model``.
+    pixel_size_um : float
+    seeds : (N, 2, 2) array, optional
+        Sparse matches for the initial guess.
+    roi : (x0, y0, x1, y1), optional
+    params : DenseParams, optional
+    model : HeightModel, optional
+        Default: from the tilts, about the image centre.
+
+    Returns
+    -------
+    HeightMap
+    """
+    if pixel_size_um is None or not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
+        raise SemlabError(f"pixel_size_um must be a positive number, got {pixel_size_um!r}")
+    if model is None:
+        if tilt_deg is None or len(tilt_deg) < 2:
+            raise SemlabError("dense_heights needs tilt_deg = (tilt0, tilt1) or a HeightModel")
+        cx = (np.shape(view0)[1] - 1) / 2.0
+        model = height_model_from_tilts(tilt_deg[0], tilt_deg[1], pixel_size_um, cx)
+    par = dense_parallax(view0, view1, seeds=seeds, roi=roi, params=params, progress=progress)
+    gx, gy = par.grid()
+    z = model.height(par.x1_px, par.y1_px, gx, gy)
+    sz = model.sigma(par.sigma_px, par.sigma_y_px)
+    valid = par.valid & np.isfinite(z) & np.isfinite(sz)
+    return HeightMap(z_um=np.where(valid, z, np.nan).astype(np.float32),
+                     sigma_um=np.where(valid, sz, np.nan).astype(np.float32), valid=valid,
+                     pixel_size_um=float(pixel_size_um), roi=par.roi, parallax=par,
+                     model=model)
+
+
+def heightmap_from_stereo(exp, stereo, params=None, progress=False):
+    """Dense height map of an experiment's views 0 and 1, consistent with its sparse result.
+
+    Parameters
+    ----------
+    exp : semlab.experiment.Experiment
+    stereo : semlab.pipeline.StereoResult
+        Its matches seed the guess and its heights fix the :class:`HeightModel` (so the
+        map is above the same reference plane as ``points3d.csv``).
+
+    Returns
+    -------
+    HeightMap
+    """
+    views = exp.views()
+    notes = []
+    if stereo.pts.shape[1] > 2:
+        notes.append("dense map from views 0 and 1 (height model fitted to the "
+                     "multi-view heights)")
+    if exp.stereo.camera == "perspective":
+        notes.append("camera = perspective: the map uses a linear (affine) height model "
+                     "fitted to the triangulated points")
+    model = height_model_from_points(stereo.pts[:, :2], stereo.z_um)
+    hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
+                       seeds=stereo.pts[:, :2], params=params, model=model, progress=progress)
+    hm.notes.extend(notes)
+    hm.notes.append(f"height model fitted to {len(stereo.pts)} points, residual "
+                    f"{model.rms_um * 1e3:.2g} nm")
+    return hm
+
+
+def hillshade(z_um, pixel_size_um, azimuth_deg=315.0, altitude_deg=45.0, z_factor=1.0):
+    """Hill-shaded relief (0..1) of a height map, NaN where the map is NaN.
+
+    Lambertian shading of the surface normal under a light from ``azimuth_deg`` (clockwise
+    from image up) at ``altitude_deg`` above the surface; ``z_factor`` exaggerates heights.
+    """
+    z = np.asarray(z_um, float) * float(z_factor)
+    if z.ndim != 2:
+        raise SemlabError(f"z_um must be a 2D map, got shape {z.shape}")
+    gy, gx = np.gradient(z, float(pixel_size_um))
+    az = np.deg2rad(azimuth_deg)
+    alt = np.deg2rad(altitude_deg)
+    # light direction in (x right, y down, z up)
+    lx, ly, lz = np.sin(az) * np.cos(alt), -np.cos(az) * np.cos(alt), np.sin(alt)
+    n = np.sqrt(1 + gx ** 2 + gy ** 2)
+    shade = np.clip((-gx * lx - gy * ly + lz) / n, 0.0, 1.0)
+    return np.where(np.isfinite(z), shade, np.nan)
+
+
+def write_heightmap_results(result, out_dir, overwrite=False, regions=None, bands=None):
+    """Write the dense map and its metrology into ``out_dir``.
+
+    Files: ``heightmap.tif`` (float32 µm, NaN = not measured), ``heightmap_sigma.tif``
+    (1σ µm), ``heightmap.x3p`` (ISO 25178-72, metres), ``heightmap.gsf`` (Gwyddion),
+    ``heightmap.ply`` (point cloud with σ), ``surface_parameters.csv`` (ISO 25178 areal
+    parameters of the map and of ``regions``), ``bands.csv`` (profiles across each band).
+
+    Parameters
+    ----------
+    result : HeightMap
+    out_dir : path
+    regions : dict name -> (x0, y0, x1, y1) or (H, W) bool mask, optional
+    bands : list of semlab.metrology.Band, optional
+        Default: detected in the map (:func:`semlab.metrology.detect_bands`).
+
+    Returns
+    -------
+    dict name -> Path
+    """
+    from pathlib import Path
+
+    from . import formats, metrology
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = ["heightmap.tif", "heightmap_sigma.tif", "heightmap.x3p", "heightmap.gsf",
+             "heightmap.ply", "surface_parameters.csv", "bands.csv"]
+    paths = {n: out / n for n in names}
+    if not overwrite:
+        for pth in paths.values():
+            if pth.exists():
+                raise SemlabError(f"{pth}: exists already; write results to a new folder")
+    s = result.pixel_size_um
+    meta = result.metadata()
+    formats.write_float_tiff(paths["heightmap.tif"], result.z_um, s, "height z (um)", meta)
+    formats.write_float_tiff(paths["heightmap_sigma.tif"], result.sigma_um, s,
+                             "height 1 sigma (um)", meta)
+    formats.write_x3p(paths["heightmap.x3p"], result.z_um, s)
+    formats.write_gsf(paths["heightmap.gsf"], result.z_um, s, title="semlab height map")
+    formats.write_ply(paths["heightmap.ply"], result.z_um, s, sigma_um=result.sigma_um,
+                      origin_px=result.roi[:2])
+    table = metrology.surface_parameters(result.z_um, s, regions=regions)
+    metrology.write_surface_parameters_csv(paths["surface_parameters.csv"], table)
+    if bands is None:
+        bands = metrology.detect_bands(result.z_um, s)
+    prof = [metrology.band_profile(result.z_um, result.sigma_um, s, b) for b in bands]
+    metrology.write_bands_csv(paths["bands.csv"], prof)
+    return paths
