@@ -41,7 +41,9 @@ of points; coverage (clicks: fraction refined; automatic: fraction of the 8-px g
 the view inside a 16 px border that hold an accepted point); semlab's median predicted 1σ
 (nm), the fractions of points within 1σ and 2σ of the truth, and efficiency (median predicted
 σ / robust σ of the actual error: 1 for error bars of the right size); the RMSE ratio to
-DeepFlow at the same points.
+DeepFlow at the same points; the median Cramér–Rao bound of the height for a 21×21
+translation subset at the set's points (:func:`crb_height_nm`, from the noise-free view and
+the detector's known noise: the information limit of that support, whatever the method).
 
 semlab is called only through :func:`semlab_heights` (a thin adapter): an API rename is a
 one-line change there.
@@ -81,6 +83,44 @@ def make_cell(tmp, regime, noise, tilts, seed=0, size=(384, 512), n_clicks=50):
     else:
         toml = synth.make_experiment(out, texture=regime, **kw)
     return experiment.load(toml)
+
+
+def clean_view0(exp, regime, seed, size):
+    """The noise-free view 0 of a cell (relative signal), re-rendered from its known scene."""
+    tilt = float(exp.stereo.tilt_deg[0])
+    if regime.startswith("real:"):
+        scene, _ = realtex.make_real_scene(regime[5:], seed=seed, size=size,
+                                           source_tilt_deg=tilt, n_landmarks=0)
+        img, _, _ = synth.render(scene, size, tilt, blur_px=0, noise=0, shading=False)
+    else:
+        scene = synth.make_scene(seed=seed, size=size, texture=regime)
+        img, _, _ = synth.render(scene, size, tilt, noise=0)
+    return img
+
+
+def crb_height_nm(clean, detector, p0, tilts, pixel_size_um, half=10):
+    """Cramér–Rao bound of the height at view-0 points for a (2·half+1)² translation subset.
+
+    From the noise-free view's gradients (counts) and the detector's per-pixel noise
+    (Poisson: variance ∝ signal, plus 8-bit quantisation), both views noisy: the Fisher matrix
+    of the 2D shift is ``Σ g gᵀ / (2 σ_i²)`` over the subset; the height follows from the x
+    shift by ``s cos θ0 / sin(θ1 − θ0)``. The information limit of a 21×21 subset, whatever
+    the method.
+    """
+    det = synth.as_detector(detector)
+    scale = (2 ** det.bits - 1) / det.full_scale
+    img = clean * scale
+    var = scale ** 2 * np.clip(clean, 1e-6, None) / det.dose_e_per_px + 1.0 / 12
+    gy, gx = np.gradient(img)
+    n = (2 * half + 1) ** 2
+    f = {k: ndimage.uniform_filter(v / (2 * var), 2 * half + 1, mode="nearest") * n
+         for k, v in (("xx", gx * gx), ("xy", gx * gy), ("yy", gy * gy))}
+    fs = {k: ndimage.map_coordinates(v, [p0[:, 1], p0[:, 0]], order=1, mode="nearest")
+          for k, v in f.items()}
+    det_f = fs["xx"] * fs["yy"] - fs["xy"] ** 2
+    var_dx = np.where(det_f > 0, fs["yy"] / np.where(det_f > 0, det_f, 1), np.inf)
+    t0, t1 = np.deg2rad(tilts)
+    return 1000 * np.sqrt(var_dx) * pixel_size_um * np.cos(t0) / abs(np.sin(t1 - t0))
 
 
 # ------------------------------------------------------------------------------ semlab adapter
@@ -208,6 +248,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
     v0, v1 = exp.views()[:2]
     flows, _ = dense_flows(v0, v1)
+    clean = clean_view0(exp, regime, seed, size)
     rows = []
     for set_name, method in (("clicks", "refined"), ("auto", "auto")):
         try:
@@ -219,10 +260,12 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
         cov = (len(p0) / sh.n_tried if sh.n_tried else np.nan) if set_name == "clicks" \
             else coverage_auto(p0, v0.shape)
         sem = score(exp, sh.pts, tilts, sh.z_err_um)
+        crb = float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
         refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
         df = refs["DeepFlow"]["rmse"]
         for name, r in [(f"semlab {method}", sem)] + list(refs.items()):
             rows.append({"set": set_name, "method": name, "cov": cov, "df_ratio": r["rmse"] / df,
+                         "crb": crb,
                          "seconds": sh.seconds if name.startswith("semlab") else np.nan, **r})
     return rows
 
@@ -234,19 +277,19 @@ def _f(v, fmt):
 
 def table(cells):
     head = ("| regime | noise | tilts | points | method | RMSE (nm) | robust σ (nm) | N | coverage "
-            "| median predicted σ (nm) | within 1σ / 2σ | efficiency | ÷ DeepFlow |")
-    lines = [head, "|" + "---|" * 13]
+            "| median predicted σ (nm) | within 1σ / 2σ | efficiency | ÷ DeepFlow | CRB 21² (nm) |")
+    lines = [head, "|" + "---|" * 14]
     for (regime, noise, tilts), rows in cells:
         for r in rows:
             lead = f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {r['set']} | {r['method']} "
             if "fail" in r:
-                lines.append(lead + f"| failed: {r['fail']} |" + " |" * 7)
+                lines.append(lead + f"| failed: {r['fail']} |" + " |" * 8)
                 continue
             eff = r["pred"] / r["rsig"] if np.isfinite(r["pred"]) else np.nan
             within = (f"{r['in1']:.0%} / {r['in2']:.0%}" if np.isfinite(r["in1"]) else "–")
             lines.append(lead + f"| {_f(r['rmse'], '.1f')} | {_f(r['rsig'], '.1f')} | {r['n']} | "
                          f"{_f(r['cov'], '.0%')} | {_f(r['pred'], '.1f')} | {within} | "
-                         f"{_f(eff, '.2f')} | {_f(r['df_ratio'], '.2f')} |")
+                         f"{_f(eff, '.2f')} | {_f(r['df_ratio'], '.2f')} | {_f(r['crb'], '.1f')} |")
     return "\n".join(lines)
 
 
