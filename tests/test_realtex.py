@@ -219,3 +219,24 @@ def test_cli_synth_real_texture(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["synth", str(tmp_path / "q"), "--texture", "glossy", "--quiet"])
     assert "expected speckle" in capsys.readouterr().err
+
+
+def test_series_frame_shows_the_known_displacement():
+    shape = (300, 360)
+    g = np.stack(np.meshgrid(np.arange(60, 300, 32.0), np.arange(60, 240, 32.0)), -1).reshape(-1, 2)
+    src = _blob_source(shape, g + 0.21)
+    scene, size = realtex.make_real_scene(src, size=SIZE, source_tilt_deg=0.0, n_landmarks=0,
+                                          seed=1, slip_um=0.05)
+    xy = realtex.material_at_source(scene, g[:, 0] + 0.21, g[:, 1] + 0.21)
+    img, _, _ = synth.render(scene, size, 0.0, disp_fraction_left=1.0, blur_px=0, noise=0,
+                             shading=False)
+    moved = synth.frame_positions(scene, xy, 1.0, size)
+    still = synth.frame_positions(scene, xy, 0.0, size)
+    background = 0.45 * 0.3 / src.mean()
+    err = _centroid_errors(img, moved, background)
+    assert len(err) >= 10
+    inside = ((moved[:, 0] > 8) & (moved[:, 0] < size[1] - 9) & (moved[:, 1] > 8)
+              & (moved[:, 1] < size[0] - 9))
+    shift = np.hypot(*(moved - still)[inside].T)
+    assert shift.max() > 0.5  # the frame is displaced...
+    assert np.median(err) < 0.03 and np.median(err) < 0.1 * np.median(shift)  # ...by the truth
