@@ -118,6 +118,7 @@ def _canvas_widget(fig, refresh_callbacks):
     if isinstance(fig.canvas, W.DOMWidget):
         fig.canvas.header_visible = False
         fig.canvas.toolbar_visible = "visible"  # always, not only while the mouse is over it
+        fig.canvas.toolbar_position = "top"     # not over the y labels of the first view
         fig.canvas.footer_visible = True        # the data coordinates under the mouse
         return fig.canvas
     image = W.Image(format="png")

@@ -194,17 +194,32 @@ def plot_stability(stab, ax=None, label=None):
     return ax
 
 
-def show_static(fig, dpi=90):
-    """Display a figure as a still PNG and close it (for notebooks that use the interactive
-    ipympl backend, so that executed reports keep a picture)."""
+def show_static(fig, dpi=90, fmt="png", quality=80):
+    """Display a figure as a still picture and close it.
+
+    For notebooks that use the interactive ipympl backend (so that executed reports keep a
+    picture), and for figures of SEM images: ``fmt="jpeg"`` stores noisy images 5-10 times
+    smaller than PNG, which keeps executed notebooks small.
+
+    Parameters
+    ----------
+    fig : Figure
+    dpi : float
+    fmt : {"png", "jpeg"}
+    quality : int
+        JPEG quality (1-95).
+    """
     import io
 
     from IPython.display import Image, display
 
+    if fmt not in ("png", "jpeg"):
+        raise ValueError(f"fmt must be 'png' or 'jpeg', got {fmt!r}")
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    kw = {"pil_kwargs": {"quality": int(quality)}} if fmt == "jpeg" else {}
+    fig.savefig(buf, format=fmt, dpi=dpi, bbox_inches="tight", **kw)
     _plt().close(fig)
-    display(Image(buf.getvalue()))
+    display(Image(buf.getvalue(), format=fmt))
 
 
 # --------------------------------------------------------------------------- report figures
@@ -258,7 +273,9 @@ def _show_gray(ax, img, pixel_size_um=None, max_px=None):
         img, k = downsample(img, max_px)
     s = pixel_size_um or 1.0
     h, w = img.shape[:2]
-    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest",
+    # a downsampled image is smoothed on screen (its pixels are not the data's anyway)
+    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax,
+              interpolation="bilinear" if k > 1 else "nearest",
               extent=(-0.5 * s, (w * k - 0.5) * s, (h * k - 0.5) * s, -0.5 * s))
     unit = "µm" if pixel_size_um else "px"
     ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)

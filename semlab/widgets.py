@@ -66,7 +66,7 @@ MAGNIFIER_MIN_ZOOM = 8.0
 _panel_ids = itertools.count()
 
 
-def picker_layout(n_views, shape, width_in=12.5, magnifier=True):
+def picker_layout(n_views, shape, width_in=10.5, magnifier=True):
     """Figure size and axes rectangles of the picker: tight margins, views side by side,
     each with its magnifier to the right.
 
@@ -75,7 +75,8 @@ def picker_layout(n_views, shape, width_in=12.5, magnifier=True):
     n_views : int
     shape : (H, W) of the (first) view
     width_in : float
-        Figure width, inches (12.5 fills a JupyterLab notebook at 100 dpi).
+        Figure width, inches (10.5 at 100 dpi fits a JupyterLab notebook on a 1600 px wide
+        window with the file browser open).
     magnifier : bool
 
     Returns

@@ -3,9 +3,19 @@
 JupyterLab (from this venv) runs on loopback in a temporary folder holding a copy of
 ``notebooks/02_correspondences.ipynb`` and a small synthetic stereo experiment; headless
 Chromium (Debian's ``/usr/bin/chromium``, driven by Playwright) opens the notebook, runs all
-cells from the Run menu, clicks a point in view 0 and its true match in view 1 on the ipympl
-canvas, presses Save, and the test checks the CSV on disk (one more row, at the clicked
-pixels) and its backup (the old rows).
+cells from the Run menu, and on the ipympl canvas:
+
+- clicks a point in view 0: both magnifiers then show the image around it;
+- clicks its true match in view 1: the panel counts 1 unsaved change;
+- presses on the new marker and wobbles the mouse by 1 px: the point does not move;
+- clicks a button (Drop, which has nothing to drop), then presses ``u`` and ``a``: the keys
+  reach the picker (undo, accept), not JupyterLab (no cell is inserted);
+- presses Save: the CSV on disk has one more row at the clicked pixels, its backup holds the
+  old rows, the file keeps its permissions (``-rw-rw-r--`` set before), the count says
+  "all saved" and the autosave side file is gone.
+
+Screenshots of each step are written to the test's temporary folder (CI keeps it as an
+artifact of the run); their paths are printed.
 
 Page coordinates of image pixels come from the canvas bounding box and the same figure
 layout drawn here with Agg; the ipympl footer, which shows the data coordinates under the
@@ -23,6 +33,7 @@ import secrets
 import shutil
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import time
@@ -42,8 +53,6 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
 TOTAL_BUDGET_S = 140.0  # everything but the server shutdown (bounded separately)
 CANVAS_GRACE_S = 15.0  # wait for the canvas to be drawn once every cell has run
-# a click on the picker this close (display px) to a marker selects it instead of adding
-PICK_RADIUS_DISPLAY_PX = 8.0
 
 
 def _chromium():
@@ -191,7 +200,8 @@ def _make_workspace(tmp_path):
         if cell["cell_type"] == "code":
             cell["outputs"], cell["execution_count"] = [], None
         if "parameters" in cell.get("metadata", {}).get("tags", []):
-            cell["source"] = f"experiment = {str(exp)!r}\nout_dir = None\n"
+            cell["source"] = (f"experiment = {str(exp)!r}\nout_dir = None\n"
+                              f"review_auto = False\n")
             n_param += 1
     assert n_param == 1, f"{NOTEBOOK.name} must have one cell tagged 'parameters'"
     (served / NOTEBOOK.name).write_text(json.dumps(nb, indent=1), encoding="utf-8")
@@ -229,7 +239,8 @@ def _layout(exp, box):
     """Where the image pixels of each view are on the canvas.
 
     Returns ``frac(view, (x, y) px) -> (fraction from the left, fraction from the top)`` of
-    the canvas box, and ``scale``: page px per image px of each view. Draws the picker figure with Agg at the canvas aspect ratio: the axes of the views are
+    the canvas box, ``scale``: page px per image px of each view, and ``mags``: the
+    magnifier boxes ``(left, top, right, bottom)`` as fractions of the canvas. Draws the picker figure with Agg at the canvas aspect ratio: the axes of the views are
     placed by subplot fractions and aspect-equal images, so the fractions do not depend on
     the dpi.
     """
@@ -252,7 +263,11 @@ def _layout(exp, box):
 
     scale = [abs(ax.transData.transform([1.0, 0.0])[0] - ax.transData.transform([0.0, 0.0])[0])
              / wpx * box["width"] for ax in view_fig.axes]  # page px per image px
-    return frac, scale
+    mags = []
+    for ax in view_fig.mag_axes:   # (left, top, right, bottom) fractions of the canvas
+        x0, y0, x1, y1 = ax.get_window_extent().extents
+        mags.append((x0 / wpx, 1.0 - y1 / hpx, x1 / wpx, 1.0 - y0 / hpx))
+    return frac, scale, mags
 
 
 _FOOTER = re.compile(r"\(x, y\) = \(\s*(-?[0-9.]+),\s*(-?[0-9.]+)\)")
@@ -261,21 +276,25 @@ _FOOTER = re.compile(r"\(x, y\) = \(\s*(-?[0-9.]+),\s*(-?[0-9.]+)\)")
 def _footer_xy(footer, deadline, want_none=False):
     """Poll the ipympl footer (data coordinates under the mouse) for up to 5 s.
 
-    Returns the (x, y) shown, once shown (or, with ``want_none``, None once it shows no
-    coordinates); the last text seen when it never did.
+    Returns the (x, y) shown once the same value is read twice 0.3 s apart (the kernel may
+    still be answering the motion events of the way there), or, with ``want_none``, None
+    once it shows no coordinates; the last text seen when neither happened.
     """
     t_end = time.monotonic() + deadline.left(5.0)
-    shown = ""
+    shown, prev = "", None
     while True:
         shown = footer.inner_text(timeout=deadline.ms(5.0))
         m = _FOOTER.search(shown)
         if want_none and m is None:
             return None
         if m and not want_none:
-            return np.array([float(m.group(1)), float(m.group(2))])
+            xy = (m.group(1), m.group(2))
+            if xy == prev:
+                return np.array([float(v) for v in xy])
+            prev = xy
         if time.monotonic() >= t_end:
             return shown
-        time.sleep(0.1)
+        time.sleep(0.3)
 
 
 def _aim(page, frac, scale, box, view, xy, deadline):
@@ -313,15 +332,16 @@ def _aim(page, frac, scale, box, view, xy, deadline):
     return px, py
 
 
+def _table_cells(page):
+    """The cells of the rows of the picker's table widget (header left out)."""
+    tab = page.locator(".semlab-picker-table table").last
+    rows = tab.locator("tr").all_inner_texts() if tab.count() else []
+    return [[c.strip() for c in r.split("\t")] for r in rows[1:]]
+
+
 def _table_rows(page):
     """(point_id, status) of the rows of the picker's table widget."""
-    tab = page.locator(".widget-html-content table").last
-    rows = tab.locator("tr").all_inner_texts() if tab.count() else []
-    out = []
-    for r in rows[1:]:
-        cells = r.split("\t")
-        out.append((cells[0].strip(), cells[-1].strip()))
-    return out
+    return [(cells[0], cells[-1]) for cells in _table_cells(page)]
 
 
 def _wait_table(page, deadline, what, pred):
@@ -366,7 +386,56 @@ def _run_all_and_wait(page, deadline):
                          f"a canvas of size 0 means the figure was closed after it was shown)")
 
 
-def _drive(page, base, token, exp, n_old, target, deadline):
+def _magnifier_std(page, mags):
+    """Grey-level spread of the canvas pixels inside each magnifier box (0 when blank)."""
+    return page.evaluate("""(mags) => {
+        const c = document.querySelector('.jupyter-matplotlib-canvas-div canvas');
+        const ctx = c.getContext('2d');
+        return mags.map(([l, t, r, b]) => {
+            const x = Math.round(l * c.width) + 2, y = Math.round(t * c.height) + 2;
+            const w = Math.max(1, Math.round((r - l) * c.width) - 4);
+            const h = Math.max(1, Math.round((b - t) * c.height) - 4);
+            const d = ctx.getImageData(x, y, w, h).data;
+            let s = 0, s2 = 0, n = 0;
+            for (let i = 0; i < d.length; i += 4) { const g = d[i]; s += g; s2 += g * g; n++; }
+            const m = s / n;
+            return Math.sqrt(Math.max(0, s2 / n - m * m));
+        });
+    }""", [list(m) for m in mags])
+
+
+def _wait_for(page, deadline, what, fn, cap_s=20.0):
+    t_end = time.monotonic() + deadline.left(cap_s)
+    last = None
+    while time.monotonic() < t_end:
+        last = fn()
+        if last is not None and last is not False:
+            return last
+        page.wait_for_timeout(200)
+    raise AssertionError(f"{what} did not happen in {cap_s:.0f} s; last seen: {last!r}")
+
+
+def _unsaved_text(page):
+    loc = page.locator(".semlab-unsaved")
+    return loc.first.inner_text() if loc.count() else ""
+
+
+class _Shots:
+    """Screenshots of every step, in the test's temporary folder (printed at the end)."""
+
+    def __init__(self, page, folder):
+        self.page, self.folder, self.paths = page, folder, []
+
+    def __call__(self, name):
+        path = self.folder / f"browser_{len(self.paths):02d}_{name}.png"
+        try:
+            self.page.screenshot(path=str(path), timeout=10_000)
+            self.paths.append(path)
+        except Exception as err:  # the page may be gone; the test says why it failed
+            print(f"no screenshot {path.name}: {err}")
+
+
+def _drive(page, base, token, exp, n_old, target, deadline, shots):
     page.goto(f"{base}/lab/tree/02_correspondences.ipynb?token={token}",
               timeout=deadline.ms(60.0))
     page.wait_for_selector(".jp-Notebook .jp-CodeCell", timeout=deadline.ms(60.0))
@@ -375,30 +444,72 @@ def _drive(page, base, token, exp, n_old, target, deadline):
         "() => /\\|\\s*Idle/.test(document.querySelector('#jp-main-statusbar')?.innerText || '')",
         timeout=deadline.ms(60.0))
     _run_all_and_wait(page, deadline)
+    n_cells = page.locator(".jp-Notebook .jp-Cell").count()
 
     canvas = page.locator(".jupyter-matplotlib-canvas-div canvas").last  # the top canvas
     canvas.scroll_into_view_if_needed(timeout=deadline.ms(10.0))
     page.wait_for_timeout(300)  # let the scrolling settle
     box = canvas.bounding_box(timeout=deadline.ms(10.0))
     assert box and box["width"] > 100 and box["height"] > 100, f"canvas box {box}"
-    frac, scale = _layout(exp, box)
+    frac, scale, mags = _layout(exp, box)
     _wait_table(page, deadline, f"{n_old} picked points",
-                       lambda r: len(r) == n_old and all(s == "picked" for _, s in r))
+                lambda r: len(r) == n_old and all(s == "picked" for _, s in r))
+    assert "all saved" in _unsaved_text(page), _unsaved_text(page)
+    blank = _magnifier_std(page, mags)
+    shots("loaded")
 
-    x, y = _aim(page, frac, scale, box, 0, target[0], deadline)
-    page.mouse.click(x, y)
+    # view 0: a new point; both magnifiers show the image around it
+    x0, y0 = _aim(page, frac, scale, box, 0, target[0], deadline)
+    page.mouse.click(x0, y0)
     _wait_table(page, deadline, "a new point being picked",
-                       lambda r: len(r) == n_old + 1 and r[-1][1] == "picking")
-    x, y = _aim(page, frac, scale, box, 1, target[1], deadline)
-    page.mouse.click(x, y)
-    _wait_table(page, deadline, f"{n_old + 1} picked points",
-                       lambda r: len(r) == n_old + 1 and all(s == "picked" for _, s in r))
+                lambda r: len(r) == n_old + 1 and r[-1][1] == "picking")
+    shown = _wait_for(page, deadline, "both magnifiers showing the image",
+                      lambda: (lambda s: s if min(s) > 8.0 else None)(_magnifier_std(page, mags)))
+    shots("magnifiers")
+    status = page.locator(".semlab-status").first.inner_text()
+    assert status.startswith(f"point {n_old}: check the ×"), status
 
+    # view 1: the true match; one unsaved change
+    x1, y1 = _aim(page, frac, scale, box, 1, target[1], deadline)
+    page.mouse.click(x1, y1)
+    _wait_table(page, deadline, f"{n_old + 1} picked points",
+                lambda r: len(r) == n_old + 1 and all(s == "picked" for _, s in r))
+    _wait_for(page, deadline, "the unsaved count", lambda: "1 unsaved change" in _unsaved_text(page))
+    before = _table_cells(page)[-1]
+
+    # a press on the new marker with a 1 px wobble: the point does not move
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    page.mouse.move(x0 + 1, y0)
+    page.mouse.move(x0 + 1, y0 + 1)
+    page.mouse.move(x0, y0 + 1)
+    page.mouse.up()
+    page.wait_for_timeout(1500)   # every event has reached the kernel and come back
+    after = _table_cells(page)[-1]
+    assert after[1:5] == before[1:5], (before, after)
+    shots("after_wobble")
+
+    # a button click, then keys: they reach the picker, not JupyterLab
+    page.locator(".jupyter-widgets.widget-button[title='Drop']").click(timeout=deadline.ms(10.0))
+    _wait_for(page, deadline, "the no-op message",
+              lambda: "nothing to drop" in page.locator(".semlab-status").first.inner_text())
+    page.wait_for_timeout(300)
+    page.keyboard.press("u")      # undo the click in view 1: the point is being picked again
+    _wait_table(page, deadline, "the undo by the u key",
+                lambda r: len(r) == n_old + 1 and r[-1][1] == "picking")
+    page.keyboard.press("a")      # accept the proposal
+    _wait_table(page, deadline, "the accept by the a key",
+                lambda r: len(r) == n_old + 1 and all(s == "picked" for _, s in r))
+    assert page.locator(".jp-Notebook .jp-Cell").count() == n_cells, "a key reached JupyterLab"
+    shots("keys_after_button")
     page.locator(".jupyter-widgets.widget-button[title='Save']").click(timeout=deadline.ms(10.0))
     status = page.locator(".widget-html-content", has_text="saved")
-    status.wait_for(timeout=deadline.ms(30.0))
-    assert f"saved {n_old + 1} point(s)" in status.inner_text(), status.inner_text()
-    return scale
+    status.first.wait_for(timeout=deadline.ms(30.0))
+    _wait_for(page, deadline, "the count after saving", lambda: "all saved" in _unsaved_text(page))
+    note = page.locator(".widget-html-content", has_text="saved " + str(n_old + 1)).first
+    assert f"saved {n_old + 1} point(s)" in note.inner_text(), note.inner_text()
+    shots("saved")
+    return scale, blank, shown
 
 
 def test_pick_and_save_in_browser(tmp_path):
@@ -412,12 +523,12 @@ def test_pick_and_save_in_browser(tmp_path):
     deadline = _Deadline(TOTAL_BUDGET_S)
     served, exp = _make_workspace(tmp_path)
     csv_path = exp / "annotations" / "correspondences.csv"
+    os.chmod(csv_path, 0o664)   # shared with the group: saving must keep it so
     old_text = csv_path.read_text()
     header, old_rows = _read_rows(csv_path)
     n_old = len(old_rows)
     assert n_old >= 2
     target = _choose_target(exp, old_rows)
-    shot = tmp_path / "browser_failure.png"
 
     with _jupyter_lab(served, tmp_path, deadline) as (base, token, log_path):
         with sync_api.sync_playwright() as pw:
@@ -426,13 +537,19 @@ def test_pick_and_save_in_browser(tmp_path):
             try:
                 page = browser.new_page(viewport={"width": 1600, "height": 1000})
                 page.set_default_timeout(30_000)
+                shots = _Shots(page, tmp_path)
                 try:
-                    scale = _drive(page, base, token, exp, n_old, target, deadline)
+                    scale, blank, shown = _drive(page, base, token, exp, n_old, target,
+                                                 deadline, shots)
+                    assert max(blank) < 1.0, f"magnifiers not blank before a click: {blank}"
                     # the files on disk: one more row, at the clicked pixels; a backup of the old
                     bak = csv_path.with_name("correspondences.bak.csv")
                     assert bak.exists(), f"no backup {bak.name}; files: " + str(
                         sorted(p.name for p in csv_path.parent.iterdir()))
                     assert bak.read_text() == old_text
+                    assert stat.S_IMODE(csv_path.stat().st_mode) == 0o664, oct(
+                        csv_path.stat().st_mode)
+                    assert not csv_path.with_name("correspondences.autosave.json").exists()
                     new_header, new_rows = _read_rows(csv_path)
                     assert new_header[:5] == header[:5]
                     assert len(new_rows) == n_old + 1, new_rows
@@ -442,17 +559,17 @@ def test_pick_and_save_in_browser(tmp_path):
                     new = np.array([float(v) for v in new_rows[-1][1:5]])
                     # view 0: where we clicked (a screen pixel is about half an image pixel)
                     assert np.all(np.abs(new[:2] - target[0]) <= 1.0), (new, target)
-                    # view 1: the click, or the proposal it confirmed when it fell within the
-                    # pick radius of it; either way near the true match
-                    tol = 1.0 + PICK_RADIUS_DISPLAY_PX / min(scale)
+                    # view 1: the proposal accepted by the a key (sub-pixel matching, 0.01-0.2
+                    # px from the truth), or the click: within a screen pixel of the truth
+                    tol = 1.0 + 1.0 / min(scale)
                     assert np.all(np.abs(new[2:] - target[1]) <= tol), (new, target)
                 except Exception as err:
-                    try:
-                        page.screenshot(path=str(shot), timeout=10_000)
-                        where = f"screenshot: {shot}"
-                    except Exception as shot_err:  # the page itself may be gone
-                        where = f"no screenshot ({shot_err})"
-                    raise AssertionError(f"{type(err).__name__}: {err}\n{where}\n"
+                    shots("failure")
+                    raise AssertionError(f"{type(err).__name__}: {err}\n"
+                                         f"screenshots: {[str(p) for p in shots.paths]}\n"
                                          f"server log: {log_path}") from err
+                finally:
+                    print("browser test screenshots:", *[str(p) for p in shots.paths],
+                          sep="\n  ")
             finally:
                 browser.close()

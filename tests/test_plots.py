@@ -21,9 +21,9 @@ def _close_figures():
     plt.close("all")
 
 
-def _png_bytes(fig, dpi=100):
+def _jpeg_bytes(fig, dpi=80):
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    fig.savefig(buf, format="jpeg", dpi=dpi, pil_kwargs={"quality": 80})
     return len(buf.getvalue())
 
 
@@ -125,8 +125,8 @@ def test_tracks_overview_grid_cycles_legend_and_small_images():
                for t in ax.get_xticklabels())
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert labels == ["valid step", "flagged step", "trail to the last frame"]
-    # small enough for a notebook: well under 1 MB at the inline backend's resolution
-    assert _png_bytes(fig) < 600_000
+    # small enough for a notebook as the report shows it (JPEG, 80 dpi), even of white noise
+    assert _jpeg_bytes(fig) < 300_000
     assert len(plots.tracks_overview(frames[:2], xy[:2], valid[:2]).axes) == 2
 
 
@@ -162,3 +162,25 @@ def test_show_picked_points_one_panel_per_view():
     fig = plots.show_picked_points(imgs, pts, np.arange(4), titles=["a", "b", "c"])
     assert [ax.get_title() for ax in fig.axes] == ["a", "b", "c"]
     assert len(fig.axes[1].texts) == 4
+
+
+def test_show_static_jpeg_is_smaller_for_sem_images(monkeypatch):
+    shown = []
+    monkeypatch.setattr("IPython.display.display", lambda obj: shown.append(obj))
+    from scipy import ndimage
+
+    rng = np.random.default_rng(8)
+    # SEM-like texture: smooth relief plus a little pixel noise (white noise alone is the
+    # worst case for both formats)
+    frames = [ndimage.gaussian_filter(rng.random((384, 512)), 2.0) + 0.01 * rng.random((384, 512))
+              for _ in range(4)]
+    xy = rng.uniform(20, 360, (4, 10, 2))
+    valid = np.ones((4, 10), bool)
+    plots.show_static(plots.tracks_overview(frames, xy, valid), dpi=100, fmt="png")
+    plots.show_static(plots.tracks_overview(frames, xy, valid), dpi=100, fmt="jpeg")
+    png, jpeg = shown
+    assert png.format == "png" and jpeg.format == "jpeg"
+    assert len(jpeg.data) < 0.6 * len(png.data)
+    assert not plt.get_fignums()                  # closed after showing
+    with pytest.raises(ValueError, match="fmt"):
+        plots.show_static(plt.figure(), fmt="gif")

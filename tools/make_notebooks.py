@@ -114,16 +114,30 @@ NOTEBOOKS["02_correspondences"] = [
 # 02 · Picking correspondences
 
 Click the same surface feature in every view. A click in one view proposes the match in the
-others (same place shifted by the offset of the points picked so far, moved onto the epipolar
-line once F is known, then refined by sub-pixel matching); press **a** or click the proposal
-to accept, drag a marker to adjust, select with a right click and press **d** to delete,
-**u** to undo; zoom with the toolbar. **Save** writes the experiment's correspondences CSV and
-keeps a backup of the file it replaces (`correspondences.bak.csv`, `.bak1.csv`, ...).
+others (the orange ×: same place shifted by the offset of the points picked so far, moved onto
+the yellow epipolar line once F is known, then refined by sub-pixel matching). The status
+line says what to do next: click the × or press **a** to accept, drag it to adjust (a drag
+starts after 3 screen pixels, so a click's wobble moves nothing), or click the right place.
+Press on a marker to select it, **d** deletes, **u** undoes, **esc** drops, **h** hides the
+points; every key has a button. The magnifier beside each view shows the active point at
+8+ screen pixels per image pixel (clicks there work too); the toolbar zooms and pans.
+
+**Keys reach the picker only while its image has the keyboard focus** (click in it once;
+the buttons give it back). Elsewhere JupyterLab's own shortcuts act on the notebook: **a**
+inserts a cell, **d d** deletes one.
+
+**Save** writes the experiment's correspondences CSV, keeps a backup of the file it replaces
+(`correspondences.bak.csv`, `.bak1.csv`, ...) and its permissions. Until then every edit is
+autosaved beside it (`correspondences.autosave.json`); re-running the picker cell restores
+it and says so. With `review_auto = True` the automatic matches are shown as yellow dots to
+accept or reject in bulk (the visible region of view 0, or by σ).
 
 The picker needs a live JupyterLab (ipympl). When this notebook is executed as a report, the
 interactive cell only shows a still picture and the cells after it read the saved file.
 """),
-    params(),
+    params('# review_auto: also match automatically and review those points in the picker\n'
+           '# (about 15 s on the demo)\n'
+           'review_auto = False\n'),
     code("%matplotlib widget\n" + SETUP.replace("%matplotlib inline\n", "")),
     code('''
 from pathlib import Path
@@ -139,9 +153,19 @@ else:
 '''),
     code('''
 # NBVAL_SKIP  (interactive: needs a browser)
+from semlab.proposals import fundamental_from_points
 from semlab.widgets import picker_widget
 if save_path is not None:
-    box = picker_widget(exp.views(), save_path, titles=[p.name for p in exp.stereo.view_paths])
+    auto = None
+    if review_auto:
+        from semlab import matching
+        auto = matching.auto_match(exp.views(), progress=False).only_valid()
+    known = exp.correspondences()
+    F, why = fundamental_from_points(auto.pts if auto is not None and len(auto) >= 8
+                                     else (known.pts if known is not None else []))
+    print("epipolar line:", "shown (F from the points so far)" if F else f"not yet ({why})")
+    box = picker_widget(exp.views(), save_path, F=F, auto=auto,
+                        titles=[p.name for p in exp.stereo.view_paths])
     display(box)
 '''),
     md("## The saved points"),
@@ -151,12 +175,9 @@ if corr is None:
     print("No correspondences file yet: pick points above and press Save (or run automatic "
           "matching in 04_depth).")
 else:
-    fig, axes = plt.subplots(1, corr.n_views, figsize=(6 * corr.n_views, 4.5))
-    for i, ax in enumerate(np.atleast_1d(axes)):
-        plots.show_image(exp.views()[i], ax=ax, title=f"view {i}", points=corr.pts[:, i],
-                         labels=corr.point_id)
-    fig.tight_layout()
-    plots.show_static(fig)  # a still picture: the picker above keeps the interactive canvas
+    fig = plots.show_picked_points(exp.views(), corr.pts, corr.point_id,
+                                   titles=[f"view {i}" for i in range(corr.n_views)])
+    plots.show_static(fig, fmt="jpeg")  # a still picture: the picker keeps the live canvas
     print(f"{corr.n_points} points in {corr.n_views} views")
 '''),
 ]
@@ -338,25 +359,16 @@ else:
         for f in pipeline.write_stereo_results(res, out_dir):
             print("wrote", f)
 '''),
-    md("## Height map: measured points over view 0 (colour = z in µm)"),
+    md("## Height map: measured points over view 0 (colour = z; nm below 1 µm)"),
     code('''
 if res is not None:
-    fig, ax = plt.subplots(figsize=(8, 5.5))
-    plots.show_image(exp.views()[0], ax=ax, title="heights over view 0")
-    lim = np.percentile(np.abs(res.z_um), 99)
-    sc = ax.scatter(res.pts[:, 0, 0], res.pts[:, 0, 1], c=res.z_um, cmap="RdBu_r", vmin=-lim, vmax=lim, s=6)
-    fig.colorbar(sc, ax=ax, label="z (µm), > 0 extrusion")
+    ax = plots.show_height_points(exp.views()[0], res.pts[:, 0], res.z_um, exp.pixel_size_um)
+    plots.show_static(ax.figure, dpi=100, fmt="jpeg")
 '''),
     md("## x–z and y–z projections, with 1σ error bars"),
     code('''
 if res is not None:
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
-    for ax, k, name in ((axes[0], 0, "x"), (axes[1], 1, "y")):
-        ax.errorbar(res.xyz_um[:, k], res.z_um, yerr=res.z_err_um, fmt=".", ms=2, elinewidth=0.5, alpha=0.6)
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel(f"{name} (µm)")
-    axes[0].set_ylabel("z (µm)")
-    fig.tight_layout()
+    fig = plots.plot_height_projections(res.xyz_um, res.z_um, res.z_err_um)
 '''),
     md("## Profile along the crack (points with a crack_id)"),
     code('''
@@ -369,20 +381,16 @@ if res is not None and (res.crack_id >= 0).any():
     t = (xy - c) @ d
     p0, p1 = c + d * t.min(), c + d * t.max()
     prof = surface.profile_along_line(res.xyz_um[:, :2], res.z_um, p0, p1, width_um=1.0)
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    ax.errorbar(prof["distance_um"], prof["z_um"], yerr=res.z_err_um[prof["index"]], fmt="o", ms=3)
-    ax.set_xlabel("distance along the crack (µm)")
-    ax.set_ylabel("z (µm)")
-    ax.set_title("heights within 0.5 µm of the crack line")
+    ax = plots.plot_profile(prof["distance_um"], prof["z_um"], res.z_err_um[prof["index"]],
+                            title="heights within 0.5 µm of the crack line")
 else:
     print("No crack points (crack_id) in the correspondences.")
 '''),
-    md("## Trend of z with x and y (the paper saw more extrusion at high y)"),
+    md("## Trend of z with x and y (the paper saw more extrusion at high y; does this sample?)"),
     code('''
 if res is not None:
-    tr = surface.height_trend(res.xyz_um)
-    for k, v in tr.items():
-        print(f"{k}: {v:.4g}" if np.isscalar(v) else f"{k}: {v}")
+    for k, name in ((0, "x"), (1, "y")):
+        print(plots.trend_sentence(res.xyz_um[:, k], res.z_um, axis=name))
 '''),
     md("## The reference method: raw clicks (no refinement) through the same geometry"),
     code('''
@@ -429,50 +437,22 @@ if tr is not None and out_dir:
     for f in pipeline.write_tracking_results(tr, out_dir):
         print("wrote", f)
 '''),
-    md("## Tracks over the frames, latest first (green: valid step, red ×: flagged step)"),
+    md("## Tracks over the frames, latest first (at most 4 frames)"),
     code('''
 if tr is not None:
-    frames = exp.frames()
-    order = list(range(len(frames) - 1, -1, -max(1, (len(frames) - 1) // 3)))
-    fig, axes = plt.subplots(1, len(order), figsize=(4.6 * len(order), 4))
-    for ax, f in zip(np.atleast_1d(axes), order):
-        plots.show_image(frames[f], ax=ax, title=f"frame {f}")
-        ok = t.valid[f]
-        ax.plot(t.xy[f, ok, 0], t.xy[f, ok, 1], ".", color="lime", ms=3)
-        ax.plot(t.xy[f, ~ok, 0], t.xy[f, ~ok, 1], "x", color="red", ms=3)
-        for i in np.flatnonzero(ok)[::3]:
-            seg = t.xy[f:, i]
-            ax.plot(seg[:, 0], seg[:, 1], "-", color="yellow", lw=0.6)
-    fig.tight_layout()
+    fig = plots.tracks_overview(exp.frames(), t.xy, t.valid, cycles=exp.series.cycles)
+    plots.show_static(fig, dpi=80, fmt="jpeg")
 '''),
     md("## Forward–backward error of every step (the reliability flag)"),
     code('''
 if tr is not None:
-    fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    for f in range(t.n_frames - 1):
-        e = t.fb_error_px[f]
-        ax.scatter(np.full(e.shape, f) + np.random.default_rng(f).uniform(-0.2, 0.2, e.shape), e,
-                   c=np.where(t.valid[f], "tab:green", "tab:red"), s=4)
-    ax.axhline(t.params.get("fb_threshold_px", 0.5), color="k", lw=0.8, ls="--", label="threshold")
-    ax.set_yscale("log")
-    ax.set_xlabel("frame (0 = earliest)")
-    ax.set_ylabel("forward–backward error (px)")
-    ax.legend()
+    ax = plots.plot_fb_errors(t.fb_error_px[:-1], t.valid[:-1], t.params.get("fb_threshold_px", 0.5))
 '''),
     md("## Lateral displacement from the earliest valid frame to the end (µm)"),
     code('''
 if tr is not None:
     ok = np.isfinite(tr.d_um)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for ax, v, name in zip(axes, (tr.dx_um, tr.dy_um, tr.d_um), ("dx", "dy", "|d|")):
-        for kind, col in (("corner", "tab:blue"), ("stereo", "tab:orange")):
-            sel = ok & (tr.seed == kind)
-            if sel.any():
-                ax.hist(v[sel], bins=30, alpha=0.6, color=col, label=f"{kind} ({sel.sum()})")
-        ax.set_xlabel(f"{name} (µm)")
-        ax.set_ylabel("tracks")
-    axes[0].legend()
-    fig.tight_layout()
+    fig = plots.displacement_histograms(tr.dx_um, tr.dy_um, tr.d_um, tr.seed)
     if ok.sum() >= 10:
         b = stats.bimodality(tr.d_um[ok])
         print(f"|d|: two-component mixture preferred: {b['prefers_two']} (ΔBIC = {b['delta_bic']:.1f})")
