@@ -283,8 +283,10 @@ def _coef_mean(client, img, tiles, smooth_sigma_px, progress):
             core = (t.y0 - y0, t.y1 - y0, t.x0 - x0, t.x1 - x0)
             yield i, (np.asarray(img[y0:y1, x0:x1], np.float64), core, smooth_sigma_px)
 
-    total = sum(s for _, s in map_tiles(client, _coef_sum_task, jobs(), len(tiles),
-                                        "spline tiles", progress))
+    # fsum: exactly rounded whatever order the tiles finish in, so every run (local or on
+    # a cluster) gets the same offset, bit for bit
+    total = math.fsum(s for _, s in map_tiles(client, _coef_sum_task, jobs(), len(tiles),
+                                              "spline tiles", progress))
     return total / img.size
 
 
@@ -535,7 +537,8 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         tqdm bars over frames (contrast) and tiles.
     **track_kw
         Keywords of ``track_reverse`` (``method``, ``win_size``, ``max_level``, ...,
-        ``seed_kind``).
+        ``seed_kind``). With ``register`` (frames registered to the reference as whole
+        images) the series is tracked untiled.
 
     Returns
     -------
@@ -557,7 +560,8 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
     if len(frames) < 2:
         return track_reverse(frames, seeds, progress=progress, **kw)  # its own error
     shape = np.shape(frames[-1])[:2]
-    if not _tiles_needed(shape, tile_px, scheduler):
+    if not _tiles_needed(shape, tile_px, scheduler) or kw.get("register") is not None:
+        # registration warps whole frames into the reference geometry: not tiled (yet)
         return track_reverse(frames, seeds, progress=progress, **kw)
     seeds = np.asarray(seeds, np.float64)
     level = int(kw.get("max_level", 3))

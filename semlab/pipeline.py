@@ -463,7 +463,7 @@ def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge
     from scipy.interpolate import griddata
 
     from . import strain as st
-    from .subset import icgn_refine
+    from .parallel import tiled_icgn
 
     s = float(pixel_size_um)
     ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
@@ -493,8 +493,9 @@ def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge
     guess = np.column_stack([griddata(p_end, back[:, k], grid, method="linear") for k in (0, 1)])
     near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
     guess = np.where(np.isfinite(guess), guess, near)
-    r = icgn_refine(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
-                    smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, progress=progress)
+    # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
+    r = tiled_icgn(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
+                   smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, progress=progress)
     u = (grid - r.pts) * s  # U(x) = x_end - X_ref, µm
     u[~r.converged] = np.nan
     ux = u[:, 0].reshape(GX.shape)
@@ -581,8 +582,11 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
     seeds = np.concatenate(seeds)
     kind = np.concatenate(kinds)
     stereo_index = np.concatenate(sidx)
-    tracks = tracking.track_reverse(frames, seeds, method=method, seed_kind=kind,
-                                    progress=progress, **(track_kw or {}))
+    from .parallel import tiled_track_reverse
+
+    # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
+    tracks = tiled_track_reverse(frames, seeds, method=method, seed_kind=kind,
+                                 progress=progress, **(track_kw or {}))
     s = exp.pixel_size_um
     first = earliest_valid_frame(tracks.valid)
     n = tracks.n_tracks

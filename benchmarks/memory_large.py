@@ -1,0 +1,190 @@
+"""Peak memory of dense matching and tracking on a 3072×4096 pair, tiled and untiled.
+
+Each case runs in a fresh Python process (so its peak is its own); the peak is the largest
+resident set of the process plus its children (worker processes), sampled every 50 ms with
+psutil, and the kernel's ``ru_maxrss`` of the process. Target (issue #9): <= 3 GB for a
+3072×4096 pair.
+
+Cases:
+
+- ``icgn_tiled``: :func:`semlab.parallel.tiled_icgn` (1024 px tiles, the default local
+  cluster: threads, all cores) of a grid of subsets (``--spacing``) from view 0 into view 1;
+- ``icgn_untiled``: the same points with one :func:`semlab.subset.icgn_refine` call;
+- ``track_tiled`` / ``track_untiled``: :func:`semlab.parallel.tiled_track_reverse` /
+  :func:`semlab.tracking.track_reverse` (LK) of Shi–Tomasi seeds over ``--frames`` frames.
+
+The images: band-limited random texture (Gaussian-filtered white noise, σ 1.5 px), view 1
+rendered with a smooth parallax field of ±4 px, the frames with a displacement growing to
+3 px, plus noise. Run::
+
+    python benchmarks/memory_large.py                 # all four cases, ~5-10 min on 2 cores
+    python benchmarks/memory_large.py --cases icgn_tiled --size 1536x2048
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CASES = ("icgn_tiled", "icgn_untiled", "track_tiled", "track_untiled")
+
+
+def texture(shape, seed):
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal(shape, dtype=np.float32)
+    return cv2.GaussianBlur(a, (0, 0), 1.5) * 40.0 + 128.0
+
+
+def warped(img, ux, uy, noise, seed):
+    import cv2
+
+    h, w = img.shape
+    xx = np.ascontiguousarray(np.broadcast_to(np.arange(w, dtype=np.float32)[None, :] + ux, (h, w)))
+    yy = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[:, None] + uy, (h, w)))
+    out = cv2.remap(img, xx, yy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return out + np.random.default_rng(seed).normal(0, noise, img.shape).astype(np.float32)
+
+
+def parallax(shape, amp_px):
+    h, w = shape
+    y = np.arange(h, dtype=np.float32)[:, None]
+    x = np.arange(w, dtype=np.float32)[None, :]
+    return (amp_px * np.sin(x / 300.0) * np.cos(y / 400.0)).astype(np.float32)
+
+
+class PeakSampler:
+    """Largest RSS of this process plus its children, sampled in a thread."""
+
+    def __init__(self, period_s=0.05):
+        import psutil
+
+        self.proc = psutil.Process()
+        self.peak = 0
+        self.period = period_s
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _rss(self):
+        total = self.proc.memory_info().rss
+        for c in self.proc.children(recursive=True):
+            try:
+                total += c.memory_info().rss
+            except Exception:          # a worker that just exited
+                pass
+        return total
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._rss())
+            time.sleep(self.period)
+
+    def __enter__(self):
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, self._rss())
+
+
+def run_case(case, size, spacing, n_frames):
+    """Run one case in this process; returns a dict of numbers."""
+    from semlab import parallel
+    from semlab.subset import icgn_refine
+    from semlab.tracking import shi_tomasi_seeds, track_reverse
+
+    h, w = size
+    base = texture((h, w), 0)
+    info = {"case": case, "size": f"{h}x{w}"}
+    with PeakSampler() as peak:
+        t0 = time.perf_counter()
+        if case.startswith("icgn"):
+            par = parallax((h, w), 4.0)
+            view1 = warped(base, par, np.float32(0), 2.0, 1)
+            xs = np.arange(16, w - 16, spacing, dtype=float)
+            ys = np.arange(16, h - 16, spacing, dtype=float)
+            gx, gy = np.meshgrid(xs, ys)
+            pts = np.column_stack([gx.ravel(), gy.ravel()])
+            # view 1 = view 0 sampled at x + par: a view-0 point sits at x - par in view 1
+            guess = pts + np.column_stack([-par[gy.astype(int).ravel(), gx.astype(int).ravel()],
+                                           np.zeros(len(pts))]) + 0.3
+            t0 = time.perf_counter()
+            if case == "icgn_tiled":
+                r = parallel.tiled_icgn(base, view1, pts, guess, tile_px=1024, progress=True)
+            else:
+                r = icgn_refine(base, view1, pts, guess, progress=True)
+            info.update(points=len(pts), converged=int(r.converged.sum()))
+        else:
+            frames = []
+            for k in range(n_frames):
+                a = (n_frames - 1 - k) / max(n_frames - 1, 1)
+                frames.append(warped(base, parallax((h, w), 3.0 * a),
+                                     parallax((w, h), 2.0 * a).T.copy(), 2.0, 10 + k))
+            seeds = shi_tomasi_seeds(frames[-1], quality=0.05, max_corners=20000)
+            t0 = time.perf_counter()
+            if case == "track_tiled":
+                t = parallel.tiled_track_reverse(frames, seeds, tile_px=1024, max_motion_px=16,
+                                                 progress=True)
+            else:
+                t = track_reverse(frames, seeds, progress=True)
+            info.update(points=len(seeds), frames=n_frames,
+                        valid_steps=float(t.valid[:-1].mean()))
+        info["seconds"] = round(time.perf_counter() - t0, 1)
+    info["peak_rss_gb"] = round(peak.peak / 1e9, 3)
+    info["ru_maxrss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9, 3)
+    return info
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--cases", default=",".join(CASES))
+    p.add_argument("--size", default="3072x4096", help="HxW (default 3072x4096)")
+    p.add_argument("--spacing", type=int, default=16, help="grid spacing of the subsets, px")
+    p.add_argument("--frames", type=int, default=3, help="frames of the tracking cases")
+    p.add_argument("--one", default="", help=argparse.SUPPRESS)   # run one case here
+    args = p.parse_args(argv)
+    h, w = (int(v) for v in args.size.lower().split("x"))
+    if args.one:
+        print("RESULT " + json.dumps(run_case(args.one, (h, w), args.spacing, args.frames)))
+        return 0
+    rows = []
+    for case in args.cases.split(","):
+        cmd = [sys.executable, __file__, "--one", case, "--size", args.size, "--spacing",
+               str(args.spacing), "--frames", str(args.frames)]
+        out = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ))
+        res = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
+        if out.returncode or not res:
+            print(out.stdout[-2000:], out.stderr[-4000:], file=sys.stderr)
+            raise SystemExit(f"case {case} failed")
+        rows.append(json.loads(res[0][7:]))
+        print(rows[-1], flush=True)
+    print(f"\nmemory_large.py, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores\n")
+    print("| case | size | points | converged / valid steps | time (s) | "
+          "peak RSS, process + workers (GB) | ru_maxrss (GB) |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        extra = f" × {r['frames']} frames" if "frames" in r else ""
+        ok = (f"{r['converged'] / r['points']:.1%}" if "converged" in r
+              else f"{r['valid_steps']:.1%}")
+        print(f"| {r['case']} | {r['size']} | {r['points']}{extra} | {ok} | {r['seconds']} | "
+              f"{r['peak_rss_gb']} | {r['ru_maxrss_gb']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
