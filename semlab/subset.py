@@ -46,17 +46,18 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft as sfft
 from scipy import ndimage
 
-from .errors import ImageError, SemlabError
+from ._validate import _as_image, _as_points, _check_int
+from .bspline import (_bspline_sample, _pair_table, _smooth, _smoothing_variance_gain,
+                      _spline_gradients, _translate_square, prefilter_image)
+from .errors import SemlabError
 from .noise import filter_noise_gain, image_noise_sigma
+from .zncc import zncc_match
 
 __all__ = ["SubsetResult", "zncc_match", "icgn_refine", "prefilter_image", "oriented_subset"]
 
 _CHUNK_PIX = 2 ** 17  # IC-GN subset pixels per chunk (working arrays stay in cache)
-_ZNCC_CHUNK = 2048  # subsets per chunk of the ZNCC search
 _N_THREADS = max(1, min(2, os.cpu_count() or 1))
 
 # Reason strings (empty string = success).
@@ -118,59 +119,6 @@ class SubsetResult:
         return len(self.pts)
 
 
-# --------------------------------------------------------------------------- validation
-def _as_image(img, name):
-    a = np.asarray(img)
-    if a.ndim == 3 and a.shape[2] in (3, 4):
-        raise ImageError(f"{name} is a colour image of shape {a.shape}; convert it to grey "
-                         "(e.g. img.mean(axis=2)) before matching")
-    if a.ndim != 2:
-        raise ImageError(f"{name} must be a 2D grey image, got shape {a.shape}")
-    if min(a.shape) < 8:
-        raise ImageError(f"{name} of shape {a.shape} is too small for subset matching")
-    a = a.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(a)):
-        raise ImageError(f"{name} contains NaN or infinite values; fill or crop them first")
-    return a
-
-
-def _as_points(pts, name, n=None):
-    p = np.asarray(pts, dtype=np.float64)
-    if p.ndim == 1 and p.shape == (2,):
-        p = p[None, :]
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise SemlabError(f"{name} must be an (N, 2) array of (x, y) pixels, got shape "
-                          f"{np.shape(pts)}")
-    if n is not None and len(p) != n:
-        raise SemlabError(f"{name} has {len(p)} points but pts_ref has {n}; give one guess "
-                          "per reference point")
-    return p
-
-
-def _check_int(value, name, lo):
-    if isinstance(value, bool) or not float(value).is_integer() or int(value) < lo:
-        raise SemlabError(f"{name} must be an integer >= {lo}, got {value!r}")
-    return int(value)
-
-
-def _smooth(img, smooth_sigma_px):
-    if smooth_sigma_px is None or smooth_sigma_px == 0:
-        return img
-    if not (np.isfinite(smooth_sigma_px) and smooth_sigma_px > 0):
-        raise SemlabError(f"smooth_sigma_px must be >= 0, got {smooth_sigma_px!r}")
-    return ndimage.gaussian_filter(img, float(smooth_sigma_px), mode="mirror", truncate=3.0)
-
-
-def _smoothing_variance_gain(smooth_sigma_px):
-    """Variance factor ``Σ w²`` of the discrete Gaussian kernel applied to white noise."""
-    if not smooth_sigma_px:
-        return 1.0
-    m = int(np.ceil(3 * smooth_sigma_px)) + 2
-    delta = np.zeros((2 * m + 1, 2 * m + 1))
-    delta[m, m] = 1.0
-    return float(np.sum(_smooth(delta, smooth_sigma_px) ** 2))
-
-
 @functools.lru_cache(maxsize=16)
 def _gradient_noise_gain(smooth_sigma_px):
     """White-noise variance gain of the B-spline x gradient at the nodes (after smoothing);
@@ -194,192 +142,6 @@ def _noise_variances(noise_sigma, ref, cur):
     if not np.all(np.isfinite(v) & (v >= 0)):
         raise SemlabError(f"noise_sigma must be finite and >= 0, got {noise_sigma!r}")
     return (float(v[0]) ** 2, float(v[1]) ** 2)
-
-
-def prefilter_image(img, smooth_sigma_px=0.0):
-    """Cubic B-spline coefficients of ``img`` (mirror boundary), for repeated sampling.
-
-    Parameters
-    ----------
-    img : (H, W) array
-        Grey image.
-    smooth_sigma_px : float
-        Gaussian pre-smoothing applied first (use the value given to :func:`icgn_refine`).
-
-    Returns
-    -------
-    (H, W) float64 array of B-spline coefficients, to be sampled with
-    ``scipy.ndimage.map_coordinates(coef, ..., order=3, prefilter=False, mode="mirror")``.
-    """
-    a = _smooth(_as_image(img, "img"), smooth_sigma_px)
-    return ndimage.spline_filter(a, order=3, mode="mirror", output=np.float64)
-
-
-# --------------------------------------------------------------------------- ZNCC search
-def zncc_match(ref_img, cur_img, pts_ref, pts_guess, half_window=10, search_px=5):
-    """Integer-pixel ZNCC search plus a sub-pixel quadratic peak, for N subsets at once.
-
-    The ``(2h+1)²`` subset of ``ref_img`` centred on the pixel nearest to each
-    ``pts_ref`` is compared with every window of ``cur_img`` whose centre is within
-    ``±search_px`` (integer pixels, in x and y) of the pixel nearest to ``pts_guess``.
-    The correlation surface is computed with batched FFTs and box sums; its peak is refined
-    by the least-squares 2D quadratic through the 3×3 neighbourhood (falling back to two
-    1D parabolas where that quadratic has no maximum).
-
-    Parameters
-    ----------
-    ref_img, cur_img : (H, W) arrays
-        Reference and current grey images (any real dtype; may have different sizes).
-    pts_ref : (N, 2) array
-        Reference points ``(x, y)`` in pixels in ``ref_img``.
-    pts_guess : (N, 2) array
-        Initial guesses ``(x, y)`` in pixels of the same points in ``cur_img``.
-    half_window : int
-        Subset half size ``h`` (subset is ``(2h+1)²`` pixels), >= 2.
-    search_px : int
-        Search radius in pixels, >= 1.
-
-    Returns
-    -------
-    pts : (N, 2) array
-        Matched ``(x, y)`` pixels in ``cur_img`` (the sub-pixel offset of ``pts_ref`` from
-        its nearest pixel is carried over as a pure translation). NaN where the subset or
-        every candidate window leaves an image, where a point is NaN, where the subset has
-        no texture, or where the peak lies on the edge of the search range (the true match
-        may be further away: increase ``search_px``).
-    zncc : (N,) array
-        Peak ZNCC in [-1, 1]; -1 where undefined (window outside an image, NaN point,
-        flat subset).
-
-    Raises
-    ------
-    ImageError
-        If an image is not 2D, too small or not finite.
-    SemlabError
-        If the point arrays have the wrong shape or the window sizes are invalid.
-    """
-    ref = _as_image(ref_img, "ref_img")
-    cur = _as_image(cur_img, "cur_img")
-    h = _check_int(half_window, "half_window", 2)
-    s = _check_int(search_px, "search_px", 1)
-    pr = _as_points(pts_ref, "pts_ref")
-    pg = _as_points(pts_guess, "pts_guess", len(pr))
-    n = len(pr)
-    out_pts = np.full((n, 2), np.nan)
-    out_z = np.full(n, -1.0)
-    if n == 0:
-        return out_pts, out_z
-
-    H0, W0 = ref.shape
-    H1, W1 = cur.shape
-    finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
-    R = np.zeros((n, 2), np.intp)
-    G = np.zeros((n, 2), np.intp)
-    R[finite] = np.rint(pr[finite]).astype(np.intp)
-    G[finite] = np.rint(pg[finite]).astype(np.intp)
-    ok = (finite & (R[:, 0] >= h) & (R[:, 0] <= W0 - 1 - h) & (R[:, 1] >= h)
-          & (R[:, 1] <= H0 - 1 - h)
-          & (G[:, 0] >= 0) & (G[:, 0] <= W1 - 1) & (G[:, 1] >= 0) & (G[:, 1] <= H1 - 1))
-
-    k = 2 * h + 1
-    S = k + 2 * s  # search region side
-    m = h + s
-    # Pad the current image so every region can be cut; a mask tells valid windows.
-    curp = np.pad(cur - cur.mean(), m, mode="constant")
-    maskp = np.pad(np.ones_like(cur), m, mode="constant")
-    reg_view = sliding_window_view(curp, (S, S))
-    msk_view = sliding_window_view(maskp, (S, S))
-    tpl_view = sliding_window_view(ref, (k, k))
-
-    idx = np.flatnonzero(ok)
-    for c0 in range(0, len(idx), _ZNCC_CHUNK):
-        ii = idx[c0:c0 + _ZNCC_CHUNK]
-        # Region top-left in padded coordinates: (G - m) + m = G.
-        reg = reg_view[G[ii, 1], G[ii, 0]]                      # (n, S, S)
-        msk = msk_view[G[ii, 1], G[ii, 0]]
-        tpl = tpl_view[R[ii, 1] - h, R[ii, 0] - h]              # (n, k, k)
-        z, peak = _zncc_surface(tpl, reg, msk, k, s)
-        out_z[ii] = np.where(np.isfinite(peak[:, 0]), z, -1.0)
-        good = np.all(np.isfinite(peak), 1)
-        frac = pr[ii] - R[ii]
-        out_pts[ii] = np.where(good[:, None], G[ii] + peak + frac, np.nan)
-    return out_pts, out_z
-
-
-def _box_sum(a, k):
-    """Sums of all k×k windows of a batch of images a (n, S, S) -> (n, S-k+1, S-k+1)."""
-    c = np.cumsum(np.cumsum(a, axis=1), axis=2)
-    c = np.pad(c, ((0, 0), (1, 0), (1, 0)))
-    return c[:, k:, k:] - c[:, :-k, k:] - c[:, k:, :-k] + c[:, :-k, :-k]
-
-
-def _zncc_surface(tpl, reg, msk, k, s):
-    """ZNCC of templates (n,k,k) over regions (n,S,S); returns peak value and sub-pixel
-    offset (n, 2) = (dx, dy) of the peak relative to the region centre (NaN if invalid)."""
-    n, S = reg.shape[0], reg.shape[1]
-    P = k * k
-    t = tpl - tpl.mean(axis=(1, 2), keepdims=True)
-    tn = np.sqrt(np.einsum("nij,nij->n", t, t))
-    # Correlation sum_xi t(xi) reg(xi + d) for all offsets via FFT (t is zero-mean, so the
-    # window mean drops out of the numerator).
-    shape = (S, S)
-    Ft = sfft.rfft2(t, s=shape, axes=(1, 2))
-    Fr = sfft.rfft2(reg, s=shape, axes=(1, 2))
-    cc = sfft.irfft2(Fr * np.conj(Ft), s=shape, axes=(1, 2))[:, :2 * s + 1, :2 * s + 1]
-    bs = _box_sum(reg, k)
-    bs2 = _box_sum(reg * reg, k)
-    cnt = _box_sum(msk, k)
-    var = bs2 - bs * bs / P
-    tiny = 1e-12 * (np.abs(bs2).max(axis=(1, 2), keepdims=True) + 1e-300)
-    valid = (cnt > P - 0.5) & (var > tiny)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = cc / (tn[:, None, None] * np.sqrt(np.where(valid, var, 1.0)))
-    z = np.where(valid & (tn[:, None, None] > 0), z, -np.inf)
-    flat = z.reshape(n, -1)
-    am = np.argmax(flat, axis=1)
-    zmax = flat[np.arange(n), am]
-    iy, ix = np.divmod(am, 2 * s + 1)
-    peak = np.full((n, 2), np.nan)
-    has = np.isfinite(zmax)
-    inner = has & (ix > 0) & (ix < 2 * s) & (iy > 0) & (iy < 2 * s)
-    if np.any(inner):
-        j = np.flatnonzero(inner)
-        nb = np.stack([z[j, iy[j] + dy, ix[j] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
-                      axis=1).reshape(-1, 3, 3)
-        nbok = np.all(np.isfinite(nb), axis=(1, 2))
-        nb = np.where(nbok[:, None, None], nb, 0.0)
-        d = _quadratic_peak(nb)
-        d[~nbok] = np.nan
-        peak[j, 0] = ix[j] - s + d[:, 0]
-        peak[j, 1] = iy[j] - s + d[:, 1]
-    zmax = np.where(has, np.clip(zmax, -1.0, 1.0), -1.0)
-    return zmax, peak
-
-
-def _quadratic_peak(c):
-    """Sub-pixel maximum (dx, dy) of 3×3 samples c (n, 3, 3) by least-squares 2D quadratic.
-
-    Falls back to independent 1D parabolas where the fitted quadratic is not concave or its
-    maximum is more than one pixel away; offsets are clipped to ±0.5 px then.
-    """
-    gx = (c[:, :, 2] - c[:, :, 0]).sum(1) / 6.0
-    gy = (c[:, 2, :] - c[:, 0, :]).sum(1) / 6.0
-    gxx = (c[:, :, 0] - 2 * c[:, :, 1] + c[:, :, 2]).sum(1) / 3.0
-    gyy = (c[:, 0, :] - 2 * c[:, 1, :] + c[:, 2, :]).sum(1) / 3.0
-    gxy = (c[:, 2, 2] - c[:, 2, 0] - c[:, 0, 2] + c[:, 0, 0]) / 4.0
-    det = gxx * gyy - gxy * gxy
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dx = (-gyy * gx + gxy * gy) / det
-        dy = (gxy * gx - gxx * gy) / det
-        ok = (gxx < 0) & (det > 0) & (np.abs(dx) <= 1) & (np.abs(dy) <= 1)
-        # 1D parabolas through the central row / column
-        px = c[:, 1, 0] - 2 * c[:, 1, 1] + c[:, 1, 2]
-        py = c[:, 0, 1] - 2 * c[:, 1, 1] + c[:, 2, 1]
-        fx = np.where(px < 0, 0.5 * (c[:, 1, 0] - c[:, 1, 2]) / px, 0.0)
-        fy = np.where(py < 0, 0.5 * (c[:, 0, 1] - c[:, 2, 1]) / py, 0.0)
-    fx = np.clip(np.nan_to_num(fx), -0.5, 0.5)
-    fy = np.clip(np.nan_to_num(fy), -0.5, 0.5)
-    return np.stack([np.where(ok, dx, fx), np.where(ok, dy, fy)], axis=1)
 
 
 # --------------------------------------------------------------------------- IC-GN
@@ -407,21 +169,6 @@ def oriented_subset(half_length, half_width, angle_deg):
     across = -ox * np.sin(a) + oy * np.cos(a)
     keep = (np.abs(along) <= half_length + 1e-9) & (np.abs(across) <= half_width + 1e-9)
     return np.column_stack([ox[keep], oy[keep]])
-
-
-def _spline_gradients(coef):
-    """Exact gradients of the cubic B-spline interpolant at the pixel nodes.
-
-    With coefficients ``c``, ``f(j) = (c[j-1] + 4 c[j] + c[j+1]) / 6`` and
-    ``f'(j) = (c[j+1] - c[j-1]) / 2`` along each axis (Unser 1999, eq. 5).
-    """
-    smooth = np.array([1.0, 4.0, 1.0]) / 6.0
-    deriv = np.array([-0.5, 0.0, 0.5])
-    gx = ndimage.correlate1d(ndimage.correlate1d(coef, deriv, axis=1, mode="mirror"),
-                             smooth, axis=0, mode="mirror")
-    gy = ndimage.correlate1d(ndimage.correlate1d(coef, deriv, axis=0, mode="mirror"),
-                             smooth, axis=1, mode="mirror")
-    return gx, gy
 
 
 def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affine",
@@ -636,166 +383,6 @@ def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason, rres):
     pts[ii], wout[ii], zncc[ii], conv[ii], nit[ii], sig[ii] = p, w, z, c, k, s
     reason[ii] = why
     rres[ii] = rr
-
-
-def _bspline_weights(f):
-    """Cubic B-spline weights (n, 4) of the taps at -1, 0, 1, 2 for fractions f (n,)."""
-    f2 = f * f
-    f3 = f2 * f
-    w0 = (1 - f) ** 3 / 6
-    w3 = f3 / 6
-    w1 = 0.5 * f3 - f2 + 2.0 / 3.0
-    return np.stack([w0, w1, 1.0 - w0 - w1 - w3, w3], axis=1)
-
-
-def _translate_square(cpad, cen, h):
-    """Cubic B-spline samples of square subsets translated to centres cen (m, 2) = (x, y).
-
-    Every pixel of a translated square subset has the same fractional offset, so the 2D
-    spline evaluation separates into two 4-tap filters over a (2h+4)² coefficient patch
-    (the same values as ``map_coordinates(order=3, prefilter=False, mode="mirror")``).
-    ``cpad`` is the coefficient image padded by 2 with mirror symmetry.
-    """
-    k = 2 * h + 1
-    fl = np.floor(cen)
-    f = cen - fl
-    i0 = fl.astype(np.intp)
-    view = sliding_window_view(cpad, (k + 3, k + 3))
-    patch = view[i0[:, 1] - h + 1, i0[:, 0] - h + 1]          # (m, k+3, k+3)
-    wx = _bspline_weights(f[:, 0])
-    wy = _bspline_weights(f[:, 1])
-    tmp = wx[:, 0, None, None] * patch[:, :, 0:k]
-    for b in range(1, 4):
-        tmp += wx[:, b, None, None] * patch[:, :, b:b + k]
-    g = wy[:, 0, None, None] * tmp[:, 0:k, :]
-    for a_ in range(1, 4):
-        g += wy[:, a_, None, None] * tmp[:, a_:a_ + k, :]
-    return g.reshape(len(cen), k * k)
-
-
-_SAMPLE_BLOCK = 16384  # points per block of _bspline_sample (its temporaries stay in cache)
-
-
-def _pair_table(cpad):
-    """Coefficient table for :func:`_bspline_sample`.
-
-    Parameters
-    ----------
-    cpad : (Hp, Wp) float64 array
-        B-spline coefficients minus their mean, padded by 2 pixels on each side with
-        mirror symmetry (``np.pad(coef - coef.mean(), 2, mode="reflect")``, the
-        ``mode="mirror"`` of :mod:`scipy.ndimage`). Removing the mean keeps the float32
-        rounding relative to the image contrast rather than its level; it shifts the
-        interpolated values by a constant, which the zero-normalised criterion ignores.
-
-    Returns
-    -------
-    table : (Hp * Wp,) float64 array
-        The coefficients in float32, flattened row-major; entry ``k`` packs the two
-        float32 values ``k`` and ``k + 1`` so that one ``np.take`` fetches two horizontal
-        taps.
-    wp : int
-        Row length ``Wp`` of the padded image.
-    scale : float
-        Largest absolute coefficient (to judge flat subsets).
-    """
-    flat = np.empty(cpad.size + 1, np.float32)
-    flat[:-1] = cpad.ravel()
-    flat[-1] = 0.0
-    pairs = np.empty((cpad.size, 2), np.float32)
-    pairs[:, 0] = flat[:-1]
-    pairs[:, 1] = flat[1:]
-    return pairs.view(np.float64).ravel(), cpad.shape[1], float(np.abs(cpad).max())
-
-
-def _weights_into(t, out):
-    """Cubic B-spline weights of the taps at -1, 0, 1, 2 for fractions t (k,), written
-    into out (4, k): ``(1-t)³/6``, ``2/3 - t²(2-t)/2``, the complement, ``t³/6``."""
-    s = 1 - t
-    np.multiply(s, s, out=out[0])
-    out[0] *= s
-    out[0] *= 1 / 6
-    t2 = t * t
-    np.multiply(t2, t, out=out[3])
-    out[3] *= 1 / 6
-    np.subtract(2, t, out=out[1])
-    out[1] *= t2
-    out[1] *= -0.5
-    out[1] += 2 / 3
-    np.subtract(1, out[0], out=out[2])
-    out[2] -= out[1]
-    out[2] -= out[3]
-
-
-def _bspline_sample(table, wp, coords):
-    """Cubic B-spline interpolant at arbitrary points, by explicit 4×4 tap gathers.
-
-    The same values as ``map_coordinates(coef, (y, x), order=3, prefilter=False,
-    mode="mirror")`` minus the coefficients' mean, for points inside the image, up to the
-    float32 rounding of the coefficients (relative 6e-8 of the contrast), but about 2.5×
-    faster: per point the value is ``Σ_a wy_a Σ_b wx_b c[iy-1+a, ix-1+b]`` with the cubic
-    B-spline weights of the fractional parts (Unser 1999, eq. 4); the 16 taps are 8
-    ``np.take`` of packed pairs (:func:`_pair_table`), done in blocks small enough for the
-    temporaries to stay in cache.
-
-    Parameters
-    ----------
-    table, wp : from :func:`_pair_table`.
-    coords : (m, 2, P) float64 array
-        Sample positions ``(x, y)`` of ``m`` subsets of ``P`` points, in unpadded pixel
-        coordinates, within ``[0, W-1] × [0, H-1]``.
-
-    Returns
-    -------
-    (m, P) float64 array.
-    """
-    m, _, P = coords.shape
-    out = np.empty((m, P))
-    bs = max(1, _SAMPLE_BLOCK // P)                        # subsets per block
-    nb = min(m, bs) * P
-    idx = np.empty(nb, np.intp)
-    pair = np.empty(nb, np.float64)
-    row = np.empty(nb, np.float32)
-    tmp = np.empty(nb, np.float32)
-    acc = np.empty(nb, np.float32)
-    wx = np.empty((4, nb), np.float32)
-    wy = np.empty((4, nb), np.float32)
-    for s0 in range(0, m, bs):
-        xb, yb = coords[s0:s0 + bs, 0], coords[s0:s0 + bs, 1]
-        k = xb.size
-        fx = np.floor(xb)
-        fy = np.floor(yb)
-        # flat index of tap (-1, -1) in the padded image: (iy - 1 + 2) * wp + (ix - 1 + 2)
-        base = fy.astype(np.intp).ravel()
-        base += 1
-        base *= wp
-        base += fx.astype(np.intp).ravel()
-        base += 1
-        frac = np.empty(xb.shape, np.float32)
-        _weights_into(np.subtract(xb, fx, out=frac, casting="same_kind").ravel(), wx[:, :k])
-        _weights_into(np.subtract(yb, fy, out=frac, casting="same_kind").ravel(), wy[:, :k])
-        ib, pb, rb, tb, ab = idx[:k], pair[:k], row[:k], tmp[:k], acc[:k]
-        taps = pb.view(np.float32).reshape(k, 2)          # the two taps of each pair
-        for a in range(4):                                 # tap rows iy-1 .. iy+2
-            np.add(base, a * wp, out=ib)
-            table.take(ib, out=pb, mode="clip")            # taps ix-1, ix (no bounds
-            # check or buffering: indices are in range, the callers test the extent)
-            np.multiply(taps[:, 0], wx[0, :k], out=rb)
-            np.multiply(taps[:, 1], wx[1, :k], out=tb)
-            rb += tb
-            ib += 2
-            table.take(ib, out=pb, mode="clip")            # taps ix+1, ix+2
-            np.multiply(taps[:, 0], wx[2, :k], out=tb)
-            rb += tb
-            np.multiply(taps[:, 1], wx[3, :k], out=tb)
-            rb += tb
-            if a == 0:
-                np.multiply(rb, wy[0, :k], out=ab)
-            else:
-                rb *= wy[a, :k]
-                ab += rb
-        out[s0:s0 + bs] = ab.reshape(-1, P)
-    return out
 
 
 def _rowdot(X, B):
