@@ -28,7 +28,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .errors import SemlabError
-from .noise import image_noise_sigma
 from .subset import SubsetResult, _as_image, icgn_refine, prefilter_image
 
 __all__ = ["AdaptiveResult", "adaptive_icgn", "TARGET_MISSED"]
@@ -94,7 +93,7 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     init_warp : (N, 6) or (6,) array, optional
         Starting (and, for translation, held) gradient terms, as in ``icgn_refine``.
     smooth_sigma_px, noise_sigma, max_iter, tol_px, ref_prefiltered, cur_prefiltered
-        As in :func:`semlab.subset.icgn_refine` (the noise is measured once here).
+        As in :func:`semlab.subset.icgn_refine`.
 
     Returns
     -------
@@ -117,8 +116,6 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     pr = np.asarray(pts_ref, float).reshape(-1, 2)
     pg = np.asarray(pts_guess, float).reshape(-1, 2)
     n = len(pr)
-    if noise_sigma is None:
-        noise_sigma = (image_noise_sigma(ref), image_noise_sigma(cur))
     rc = prefilter_image(ref, smooth_sigma_px) if ref_prefiltered is None else ref_prefiltered
     cc = prefilter_image(cur, smooth_sigma_px) if cur_prefiltered is None else cur_prefiltered
     iw = np.zeros((n, 6)) if init_warp is None else np.broadcast_to(
@@ -150,6 +147,11 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             fits = rt.residual_ratio <= ra.residual_ratio + 3 * np.sqrt(2.0 / dof)
             cand[1] = ("translation", _mask_result(rt, ~(fits | ~ra.converged)))
         for name, r in cand:
+            # a subset whose residual exceeds the noise by more than the chi-square scatter
+            # does not fit its shape function (curved parallax, a step): not accepted
+            dof = (2 * h + 1) ** 2 - 6
+            r = _mask_result(r, r.converged & ~(r.residual_ratio <= 1 + 3 * np.sqrt(2.0 / dof)),
+                             "subset does not fit its shape function (residual above noise)")
             s = np.where(r.converged, np.nanmax(r.sigma_px, axis=1, initial=-np.inf), np.inf)
             s = np.where(np.isnan(s), np.inf, s)
             ok_now = s <= target_sigma_px
@@ -178,13 +180,12 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
                           target_met=met, target_sigma_px=float(target_sigma_px))
 
 
-def _mask_result(r, bad):
-    """A copy of r with rows ``bad`` marked not converged (translation misfit)."""
+def _mask_result(r, bad, why="translation misfit (held gradient does not fit)"):
+    """A copy of r with rows ``bad`` marked not converged (misfit)."""
     if not np.any(bad):
         return r
     conv = r.converged & ~bad
-    reason = np.where(bad & r.converged, "translation misfit (held gradient does not fit)",
-                      r.reason)
+    reason = np.where(bad & r.converged, why, r.reason)
     return replace(r, converged=conv, reason=reason)
 
 
@@ -194,12 +195,12 @@ def _empty(n, noise_sigma):
                         n_iter=np.zeros(n, int), sigma_px=np.full((n, 2), np.nan),
                         reason=np.full(n, "no subset tried", dtype=object),
                         residual_ratio=np.full(n, np.nan),
-                        noise_sigma=np.broadcast_to(np.asarray(noise_sigma, float), (2,)))
+                        noise_sigma=np.full(2, np.nan))
 
 
 def _assign(best, rows, r, k):
     """best with rows ``rows`` replaced by rows ``k`` of r (a new object)."""
-    out = {}
+    out = {"noise_sigma": r.noise_sigma}
     for f in ("pts", "warp", "zncc", "converged", "n_iter", "sigma_px", "reason",
               "residual_ratio"):
         a = np.array(getattr(best, f), dtype=object if f == "reason" else None)

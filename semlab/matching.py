@@ -28,6 +28,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import GeometryError, ImageError, SemlabError
+from .adaptive import adaptive_icgn
+from .noise import image_noise_sigma
 from .subset import icgn_refine, oriented_subset, prefilter_image, zncc_match
 
 __all__ = ["MatchResult", "refine_correspondences", "auto_match", "merge_matches",
@@ -60,6 +62,11 @@ class MatchResult:
         Origin of each point: ``"click"`` (refined hand click) or ``"auto"``.
     source_index : (N,) int array
         Row of each point in the input of its kind (click row, or grid index for auto).
+    subset_px : (N,) int array
+        Side ``2h+1`` (pixels) of the largest square subset used for the point over the
+        views: its spatial resolution (times the pixel size in µm). With
+        ``target_sigma_px`` it is chosen per point (:func:`semlab.adaptive.adaptive_icgn`);
+        None in results made without it.
     """
 
     pts: np.ndarray
@@ -70,6 +77,7 @@ class MatchResult:
     ref_view: int
     kind: np.ndarray
     source_index: np.ndarray
+    subset_px: np.ndarray = None
 
     def __len__(self):
         return len(self.pts)
@@ -84,7 +92,8 @@ class MatchResult:
         m = np.asarray(mask)
         return replace(self, pts=self.pts[m], zncc=self.zncc[m], valid=self.valid[m],
                        sigma_px=self.sigma_px[m], reason=self.reason[m], kind=self.kind[m],
-                       source_index=self.source_index[m])
+                       source_index=self.source_index[m],
+                       subset_px=None if self.subset_px is None else self.subset_px[m])
 
     def only_valid(self):
         """The valid points only."""
@@ -290,7 +299,7 @@ def _combine(sq_pts, sq_sig, or_pts, or_sig, or_zn, min_zncc, kappa):
 def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                            warp="affine", min_zncc=0.8, *, smooth_sigma_px=0.0,
                            band_aware=True, band_half_width_px=3, kappa=1.0,
-                           progress=False):
+                           target_sigma_px=None, max_half_window=28, progress=False):
     """Refine hand-clicked correspondences to sub-pixel accuracy.
 
     The reference-view positions are kept exactly (they define which material point is
@@ -331,6 +340,13 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         parallax.
     band_half_width_px, kappa : float
         See ``band_aware``.
+    target_sigma_px : float, optional
+        Size each point's square subset by its information: the smallest from
+        ``half_window`` up to ``max_half_window`` whose predicted σ reaches this target,
+        with the shape function it supports (:func:`semlab.adaptive.adaptive_icgn`;
+        ``warp`` is then ignored). None: one fixed ``half_window``.
+    max_half_window : int
+        Largest subset half size with ``target_sigma_px``.
     progress : bool
         Show progress bars.
 
@@ -373,6 +389,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
     sig_x = np.zeros((n, v))
     valid = np.ones(n, bool)
     reason = np.full(n, "", dtype=object)
+    side = np.zeros(n, int)
     pr = p[:, ref]
     ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
     for j in range(v):
@@ -390,10 +407,10 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         guess, z0 = zncc_match(ims[ref], ims[j], pr, p[:, j], half_window=half_window,
                                search_px=search_px)
         cur_coef = prefilter_image(ims[j], smooth_sigma_px)
-        r = icgn_refine(ims[ref], ims[j], pr, np.where(np.isfinite(guess), guess, p[:, j]),
-                        half_window=half_window, warp=warp, init_warp=grad,
-                        smooth_sigma_px=smooth_sigma_px, ref_prefiltered=ref_coef,
-                        cur_prefiltered=cur_coef, progress=progress)
+        r, hw_j = _grid_icgn(ims[ref], ims[j], pr, np.where(np.isfinite(guess), guess, p[:, j]),
+                             half_window, warp, grad, smooth_sigma_px, ref_coef, cur_coef,
+                             target_sigma_px, max_half_window, progress=progress)
+        side = np.maximum(side, np.where(r.converged, 2 * hw_j + 1, 0))
         pts_j, sig_j, zn_j = r.pts.copy(), r.sigma_px[:, 0].copy(), r.zncc.copy()
         ok_j = r.converged & (r.zncc >= min_zncc)
         nosearch = ~np.all(np.isfinite(guess), 1)
@@ -434,7 +451,34 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
     sigma[~valid] = np.nan
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma,
                        reason=reason.astype(str), ref_view=ref,
-                       kind=np.full(n, "click"), source_index=np.arange(n))
+                       kind=np.full(n, "click"), source_index=np.arange(n), subset_px=side)
+
+
+def _ladder(h_min, h_max):
+    """Subset half sizes from h_min to h_max growing by ~1.4 (√2: twice the pixels)."""
+    hs = [int(h_min)]
+    while hs[-1] < h_max:
+        hs.append(min(int(h_max), max(hs[-1] + 1, int(round(hs[-1] * 1.4)))))
+    return tuple(hs)
+
+
+def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_sigma_px,
+               ref_coef, cur_coef, target_sigma_px, max_half_window, **kw):
+    """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``; returns the
+    SubsetResult and the (N,) half sizes used."""
+    if target_sigma_px is None:
+        r = icgn_refine(ref_img, img, pts, guess, half_window=half_window, warp=warp,
+                        init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
+                        ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
+        return r, np.full(len(pts), int(half_window))
+    kw.pop("progress", None)
+    a = adaptive_icgn(ref_img, img, pts, guess, target_sigma_px,
+                      half_windows=_ladder(half_window, max(half_window, max_half_window)),
+                      init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
+                      ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
+    # a point that missed the target is still a match (its sigma says how good)
+    reason = np.where(a.subset.converged, "", a.subset.reason)
+    return replace(a.subset, reason=reason), np.maximum(a.half_window, 0)
 
 
 # --------------------------------------------------------------------------- automatic
@@ -519,18 +563,6 @@ def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
     med = np.median(nbv, axis=1)
     mad = np.median(np.abs(nbv - med[:, None]), axis=1)
     return np.abs(values - med) > np.maximum(n_mad * 1.4826 * mad, thresh_floor)
-
-
-def _noise_sigma(img):
-    """Robust standard deviation of white noise in an image (Immerkær 1996, "Fast noise
-    variance estimation", CVIU 64(2)): the 3×3 mask ``[[1,-2,1],[-2,4,-2],[1,-2,1]]`` cancels
-    locally linear (and largely smooth) image content; its response to white noise of
-    std σ has std 6σ. The median absolute response (÷ 0.6745) makes it robust to edges."""
-    from scipy import ndimage
-
-    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], float)
-    r = ndimage.convolve(np.asarray(img, float), k, mode="reflect")[1:-1, 1:-1]
-    return float(1.4826 * np.median(np.abs(r)) / 6.0)
 
 
 def _subset_std(img, half_window, pts):
@@ -807,7 +839,8 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
                smooth_sigma_px=None, consistency_px=0.3, band_aware=True,
                band_half_width_px=3, kappa=1.0, max_roughness_px=0.08, dense_init=True,
                wide_search_px=10, min_texture_snr=1.0, multiview_px=0.3, max_iter=60,
-               tol_px=1e-3, max_features=5000, backward_px=0.1, dense_prior_below=0.5):
+               tol_px=1e-3, max_features=5000, backward_px=0.1, dense_prior_below=0.5,
+               target_sigma_px=None, max_half_window=28):
     """Automatic dense correspondences between SEM views.
 
     1. Sparse features (SIFT, Lowe 2004 IJCV 60(2); or Shi–Tomasi corners 1994 described by
@@ -916,6 +949,10 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         (tall objects: hundreds of pixels of parallax varying over the view), the optical
         flow starts from a dense map interpolated from the consistent matches
         (:func:`_dense_prior`) instead of the affine. 0 disables it.
+    target_sigma_px, max_half_window : float or None, int
+        Size each grid point's subset by its information, from ``half_window`` up to
+        ``max_half_window`` (see :func:`refine_correspondences`); the forward–backward
+        check uses each point's own subset. None: one fixed ``half_window``.
 
     Returns
     -------
@@ -968,8 +1005,9 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     sig_x = np.zeros((n, v))
     valid = np.ones(n, bool)
     reason = np.full(n, "", dtype=object)
+    side = np.zeros(n, int)
 
-    noise0 = _noise_sigma(ims[ref])        # white-noise estimate, regulariser of the flow
+    noise0 = image_noise_sigma(ims[ref])   # white-noise estimate, regulariser of the flow
     eps = max(noise0, 1e-3 * float(np.ptp(ims[ref])) + 1e-12)
     sub_std = _subset_std(ims[ref], half_window, grid)
     work = None
@@ -1060,11 +1098,11 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
                                                 half_window, min_zncc, seed)
             ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
         cur_coef = prefilter_image(ims[j], smooth_sigma_px)
-        r = icgn_refine(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
-                        half_window=half_window, init_warp=init_w,
-                        smooth_sigma_px=smooth_sigma_px, ref_prefiltered=ref_coef,
-                        cur_prefiltered=cur_coef, progress=progress, max_iter=max_iter,
-                        tol_px=tol_px)
+        r, hw_j = _grid_icgn(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
+                             half_window, "affine", init_w, smooth_sigma_px, ref_coef,
+                             cur_coef, target_sigma_px, max_half_window, progress=progress,
+                             max_iter=max_iter, tol_px=tol_px)
+        side[work] = np.maximum(side[work], np.where(r.converged, 2 * hw_j + 1, 0))
         ok_j = r.converged & (r.zncc >= min_zncc)
         pts_j, sig_j = r.pts, r.sigma_px[:, 0]
         if band_aware and ok_j.sum() >= 6:
@@ -1096,7 +1134,9 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         if backward_px is not None:
             warp_full = np.full((n, 6), np.nan)
             warp_full[work] = np.where(np.isfinite(r.warp), r.warp, init_w)
-            fwd_state[j] = (cur_coef, warp_full)
+            hw_full = np.full(n, int(half_window))
+            hw_full[work] = np.where(hw_j > 0, hw_j, half_window)
+            fwd_state[j] = (cur_coef, warp_full, hw_full)
 
     # local consistency of parallax and cross-parallax against grid neighbours (twice)
     for _ in range(2):
@@ -1127,13 +1167,16 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
                                  f"> {thr:.2f} px: steep flank)")
             valid[idx[bad]] = False
     if backward_px is not None:
-        for j, (coef_j, warp_j) in fwd_state.items():
+        for j, (coef_j, warp_j, hw_full) in fwd_state.items():
             idx = np.flatnonzero(valid)
             if len(idx) == 0:
                 break
-            fb_d = _backward_distance(ims[j], ims[ref], out[idx, j], grid[idx], warp_j[idx],
-                                      half_window, smooth_sigma_px, coef_j, ref_coef,
-                                      max_iter, tol_px)
+            fb_d = np.full(len(idx), np.nan)
+            for h in np.unique(hw_full[idx]):      # the backward match uses the same subset
+                k = hw_full[idx] == h
+                fb_d[k] = _backward_distance(ims[j], ims[ref], out[idx[k], j], grid[idx[k]],
+                                             warp_j[idx[k]], int(h), smooth_sigma_px, coef_j,
+                                             ref_coef, max_iter, tol_px)
             bad = ~(fb_d <= backward_px)
             for i, dd in zip(idx[bad], fb_d[bad]):
                 reason[i] = (f"view {j}: forward–backward mismatch "
@@ -1155,7 +1198,8 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         from tqdm.auto import tqdm
         tqdm.write(f"auto_match: {valid.sum()} of {n} grid points accepted")
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma, reason=reason.astype(str),
-                       ref_view=ref, kind=np.full(n, "auto"), source_index=gidx)
+                       ref_view=ref, kind=np.full(n, "auto"), source_index=gidx,
+                       subset_px=side)
 
 
 # --------------------------------------------------------------------------- merge
@@ -1217,4 +1261,13 @@ def merge_matches(a, b, min_separation_px=3):
                        reason=np.concatenate([a.reason[ka], b.reason[kb]]),
                        ref_view=a.ref_view,
                        kind=np.concatenate([a.kind[ka], b.kind[kb]]),
-                       source_index=np.concatenate([a.source_index[ka], b.source_index[kb]]))
+                       source_index=np.concatenate([a.source_index[ka], b.source_index[kb]]),
+                       subset_px=_merge_subset_px(a, ka, b, kb))
+
+
+def _merge_subset_px(a, ka, b, kb):
+    if a.subset_px is None and b.subset_px is None:
+        return None
+    def side(r, k):
+        return np.full(k.sum(), -1) if r.subset_px is None else r.subset_px[k]
+    return np.concatenate([side(a, ka), side(b, kb)])

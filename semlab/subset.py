@@ -354,15 +354,28 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     def run(ii):
         return ii, _icgn_chunk(ctx, X0[ii], pr[ii], pg[ii], grad0[ii])
 
+    cov_in = []
     if len(chunks) > 1 and _N_THREADS > 1:
         with ThreadPoolExecutor(_N_THREADS) as ex:
             results = ex.map(run, chunks)
             results = _maybe_tqdm(results, len(chunks), progress)
             for ii, r in results:
-                _store(ii, r, pts, wout, zncc, conv, nit, sig, reason, rres)
+                cov_in.append(_store(ii, r, pts, wout, zncc, conv, nit, reason))
     else:
         for ii in _maybe_tqdm(chunks, len(chunks), progress):
-            _store(ii, run(ii)[1], pts, wout, zncc, conv, nit, sig, reason, rres)
+            cov_in.append(_store(ii, run(ii)[1], pts, wout, zncc, conv, nit, reason))
+    if cov_in:
+        Hs, Hk, Hinv, rvar, rat, e = (np.concatenate(a) for a in zip(*cov_in))
+        ii = idx if len(chunks) == 1 else np.concatenate([c for c in chunks])
+        noise_var = _calibrate_noise(noise_var, rvar, rat, ctx["noise_gain"], noise_sigma)
+        ctx["noise_var"] = noise_var
+        xi_ = ctx["xi"]
+        B = np.stack([np.ones(xi_.shape[1]), xi_[0], xi_[1]], 1) if ctx["affine"] else \
+            np.ones((xi_.shape[1], 1))
+        var, rr = _covariance(ctx, Hs, Hk, Hinv, B, rvar, rat, e)
+        ok = conv[ii]
+        sig[ii] = np.where(ok[:, None], np.sqrt(np.maximum(var, 0)), np.nan)
+        rres[ii] = np.where(ok, rr, np.nan)
 
     reason = np.array([str(r) for r in reason], dtype=object).astype(str) if n else \
         np.zeros(0, dtype="<U1")
@@ -378,11 +391,11 @@ def _maybe_tqdm(it, total, progress):
     return tqdm(it, total=total, desc="IC-GN subsets", unit="chunk")
 
 
-def _store(ii, r, pts, wout, zncc, conv, nit, sig, reason, rres):
-    p, w, z, c, k, s, why, rr = r
-    pts[ii], wout[ii], zncc[ii], conv[ii], nit[ii], sig[ii] = p, w, z, c, k, s
+def _store(ii, r, pts, wout, zncc, conv, nit, reason):
+    p, w, z, c, k, why, cov_in = r
+    pts[ii], wout[ii], zncc[ii], conv[ii], nit[ii] = p, w, z, c, k
     reason[ii] = why
-    rres[ii] = rr
+    return cov_in
 
 
 def _rowdot(X, B):
@@ -615,12 +628,42 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
     e[:, 1, 4] = o[:, 0]
     e[:, 1, 5] = o[:, 1]
     e = e[:, :, cols_p]
-    var, rr = _covariance(ctx, Hs, Hk, Hinv, B, rvar, rat, e)
-    sig = np.where(ok[:, None], np.sqrt(np.maximum(var, 0)), np.nan)
     zn = np.where(np.isfinite(zn) & (status != 2) & (status != 3) & (status != 4),
                   np.clip(zn, -1, 1), -1.0)
-    rr = np.where(ok, rr, np.nan)
-    return pts, w, zn, ok, nit, sig, why, rr
+    return pts, w, zn, ok, nit, why, (Hs, Hk, Hinv, np.where(ok, rvar, np.nan), rat, e)
+
+
+@functools.lru_cache(maxsize=16)
+def _interp_noise_gain():
+    """Mean over sub-pixel fractions of the white-noise variance gain of the cubic
+    B-spline interpolant (both axes): the current subset's noise shrinks by it."""
+    t = np.linspace(0, 1, 21)[:-1]
+    delta = np.zeros(41)
+    delta[20] = 1.0
+    c = ndimage.spline_filter1d(delta, order=3, mode="mirror")
+    g1 = [np.sum(ndimage.map_coordinates(c, [np.arange(41) + tt], order=3, prefilter=False,
+                                         mode="mirror") ** 2) for tt in t]
+    return float(np.mean(g1)) ** 2
+
+
+def _calibrate_noise(noise_var, rvar, ratio, gain, mode):
+    """Measured noise variances, lowered to what the matched subsets' residuals allow.
+
+    Immerkær's estimate is an upper bound where the texture is sharp at the pixel scale;
+    the median residual variance of the converged subsets (÷ the smoothing and the
+    interpolation gains) is a second upper bound (it also holds model misfit). With
+    ``mode`` None the smaller is used, as the ratio of the two (the relative noise of the
+    two images is kept from the image estimates).
+    """
+    if mode is not None or not np.isfinite(noise_var[0]):
+        return noise_var
+    ok = np.isfinite(rvar) & np.isfinite(ratio)
+    if ok.sum() < 10:
+        return noise_var
+    s_img = noise_var[0] + ratio[ok] ** 2 * noise_var[1]
+    f = float(np.median((rvar[ok] / gain / _interp_noise_gain()) / np.maximum(s_img, 1e-300)))
+    f = min(1.0, f) if np.isfinite(f) else 1.0
+    return (noise_var[0] * f, noise_var[1] * f)
 
 
 def _covariance(ctx, Hs, Hk, Hinv, B, rvar, ratio, e):

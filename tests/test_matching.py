@@ -378,3 +378,23 @@ def test_auto_match_tall_object_hundreds_of_px_parallax():
         if below:
             assert np.ptp(v.pts[:, 1, 0] - v.pts[:, 0, 0]) > 200
     assert n_valid[0.5] > 1.5 * n_valid[0.0]
+
+
+def test_refine_with_target_sigma_sizes_subsets(stereo):
+    """target_sigma_px on noisy views: subsets grow to reach the target and are reported
+    in subset_px; the fixed path reports its one size."""
+    sc, _ = stereo
+    ims = [sc.render(TILTS[0], noise=0.12, seed=5),
+           sc.render(TILTS[1], noise=0.12, gain=0.8, offset=12, seed=6)]
+    true, clicks = _clicks(sc)
+    fixed = refine_correspondences(ims, clicks, band_aware=False, half_window=7,
+                                   smooth_sigma_px=0.8)
+    adapt = refine_correspondences(ims, clicks, band_aware=False, half_window=7,
+                                   target_sigma_px=0.02, max_half_window=20,
+                                   smooth_sigma_px=0.8)
+    assert np.all(fixed.subset_px[fixed.valid] == 15)
+    assert adapt.valid.mean() >= 0.9
+    s = adapt.subset_px[adapt.valid]
+    assert np.median(s) > 15 and np.all(s <= 41)
+    assert np.median(adapt.sigma_px[adapt.valid]) < np.median(fixed.sigma_px[fixed.valid])
+    assert len(adapt.select(adapt.valid).subset_px) == adapt.valid.sum()
