@@ -14,8 +14,11 @@ __all__ = [
     "display_range", "show_image", "add_scale_bar", "show_images", "show_height_map",
     "show_line_families", "show_epipolar_lines", "plot_stability", "show_static",
     "height_unit", "downsample", "show_height_points", "plot_height_projections",
-    "plot_profile", "trend_sentence", "tracks_overview", "plot_fb_errors", "shared_bins",
-    "displacement_histograms", "show_picked_points",
+    "plot_point_profile", "trend_sentence", "tracks_overview", "plot_fb_errors", "shared_bins",
+    "displacement_histograms", "show_picked_points", "show_line_families_views",
+    "stability_figure", "lateral_vs_depth", "strain_maps", "principal_directions",
+    "strain_history", "error_histograms",
+    "show_heightmap_panels", "show_hillshade", "plot_profile", "show_bands", "plot_band_profiles",
 ]
 
 
@@ -347,8 +350,9 @@ def plot_height_projections(xyz_um, z_um, z_err_um):
     return fig
 
 
-def plot_profile(distance_um, z_um, z_err_um, ax=None, title="heights along the crack"):
-    """A height profile with 1σ error bars (nm below 1 µm) against distance (µm)."""
+def plot_point_profile(distance_um, z_um, z_err_um, ax=None, title="heights along the crack"):
+    """Heights of measured points along a line with 1σ error bars (nm below 1 µm) against
+    distance (µm); :func:`plot_profile` draws a dense profile with its 1σ band."""
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(7, 3.5))
@@ -664,3 +668,180 @@ def plot_band_profiles(profiles, ncols=3, size=3.2):
     for ax in axs.ravel()[len(profiles):]:
         ax.set_visible(False)
     return fig
+
+
+def show_line_families_views(images, lines, vps=None, size=(7.0, 5.2)):
+    """The line families of every calibration view, one panel per view.
+
+    Parameters
+    ----------
+    images : list of (H, W) arrays or None
+        A view without an image gets an empty panel saying so.
+    lines : list of dict ``{family: (M, 4) segments}`` per view
+    vps : list of (F, 3) homogeneous vanishing points per view, optional
+    """
+    plt = _plt()
+    n = len(lines)
+    fig, axes = plt.subplots(1, n, figsize=(size[0] * n, size[1]), squeeze=False)
+    for i, ax in enumerate(axes[0]):
+        if images[i] is None:
+            ax.axis("off")
+            ax.text(0.5, 0.5, f"view {i}: no image in lines.json", ha="center",
+                    transform=ax.transAxes, fontsize=REPORT_FONTSIZE)
+            continue
+        show_line_families(images[i], lines[i], ax=ax, title=f"view {i}",
+                           vps=None if vps is None else vps[i])
+    fig.tight_layout()
+    return fig
+
+
+def stability_figure(stabs, title="F stability against the number of clicked points"):
+    """:func:`plot_stability` of several models in one axes.
+
+    Parameters
+    ----------
+    stabs : dict ``{model name: stability dict}`` (:func:`semlab.epipolar.stability`)
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for model, st in stabs.items():
+        plot_stability(st, ax=ax, label=model)
+    ax.set_title(title, fontsize=REPORT_FONTSIZE + 1)
+    return fig
+
+
+def lateral_vs_depth(d_um, z_um, dx_um, dy_um, n_boot=500, seed=0):
+    """Height against lateral displacement, four panels, with Pearson and Spearman
+    correlations and their bootstrap CIs (:func:`semlab.stats.correlation`) in the titles.
+
+    Heights are in nm when every ``|z|`` is below 1 µm.
+
+    Parameters
+    ----------
+    d_um, z_um, dx_um, dy_um : (N,) arrays (µm)
+
+    Returns
+    -------
+    Figure
+    """
+    from .stats import correlation
+
+    plt = _plt()
+    unit, f = height_unit(z_um)
+    z = np.asarray(z_um, float)
+    pairs = ((d_um, z, "|d| (µm)", f"z ({unit})"), (d_um, np.abs(z), "|d| (µm)", f"|z| ({unit})"),
+             (dx_um, z, "dx (µm)", f"z ({unit})"), (dy_um, z, "dy (µm)", f"z ({unit})"))
+    fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+    for ax, (x, y, xl, yl) in zip(axes.ravel(), pairs):
+        ax.plot(x, np.asarray(y) * f, ".", ms=4)
+        c = correlation(x, y, n_boot=n_boot, seed=seed)
+        ax.set_title(f"Pearson {c['pearson_r']:+.2f} [{c['pearson_ci'][0]:+.2f}, "
+                     f"{c['pearson_ci'][1]:+.2f}]\nSpearman {c['spearman_rho']:+.2f} "
+                     f"[{c['spearman_ci'][0]:+.2f}, {c['spearman_ci'][1]:+.2f}]",
+                     fontsize=REPORT_FONTSIZE)
+        ax.set_xlabel(xl, fontsize=REPORT_FONTSIZE)
+        ax.set_ylabel(yl, fontsize=REPORT_FONTSIZE)
+        ax.tick_params(labelsize=REPORT_FONTSIZE)
+    fig.tight_layout()
+    return fig
+
+
+def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
+    """Strain component maps side by side, each with a symmetric colour scale (98th
+    percentile of ``|value|``) and its colour bar.
+
+    Parameters
+    ----------
+    grid_x_px, grid_y_px : (nx,), (ny,) grid coordinates (pixels)
+    maps : dict ``{name: (ny, nx) array}`` of dimensionless strains
+    pixel_size_um : float, optional
+        Axes in µm when given.
+    """
+    plt = _plt()
+    s = pixel_size_um or 1.0
+    unit = "µm" if pixel_size_um else "px"
+    ext = [grid_x_px[0] * s, grid_x_px[-1] * s, grid_y_px[-1] * s, grid_y_px[0] * s]
+    fig, axes = plt.subplots(1, len(maps), figsize=(4.5 * len(maps), 3.8), squeeze=False)
+    for ax, (name, v) in zip(axes[0], maps.items()):
+        lim = float(np.nanpercentile(np.abs(v), 98)) or 1e-6
+        im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        ax.set_title(name, fontsize=REPORT_FONTSIZE + 1)
+        ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
+        ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
+        ax.tick_params(labelsize=REPORT_FONTSIZE)
+        fig.colorbar(im, ax=ax, label="strain (–)")
+    fig.tight_layout()
+    return fig
+
+
+def principal_directions(grid_x_px, grid_y_px, e1, angle_deg, pixel_size_um=None, ax=None):
+    """The first principal strain as headless arrows (direction, length = size) on the grid.
+
+    Parameters
+    ----------
+    grid_x_px, grid_y_px : (nx,), (ny,) grid coordinates (pixels)
+    e1 : (ny, nx) first principal strain
+    angle_deg : (ny, nx) its direction, degrees from the x axis (image y down)
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.5, 4.5))
+    s = pixel_size_um or 1.0
+    unit = "µm" if pixel_size_um else "px"
+    gx, gy = np.meshgrid(np.asarray(grid_x_px) * s, np.asarray(grid_y_px) * s)
+    a = np.deg2rad(angle_deg)
+    ax.quiver(gx, gy, e1 * np.cos(a), e1 * np.sin(a), color="tab:red", pivot="mid",
+              headwidth=0, angles="xy", label="e1: direction and size")
+    ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
+    ax.set_title("first principal strain: direction and size", fontsize=REPORT_FONTSIZE + 1)
+    ax.legend(fontsize=REPORT_FONTSIZE, loc="upper right")
+    return ax
+
+
+def strain_history(history, cycles=None, ax=None):
+    """Mean strain of each frame relative to the end state, against cycles (or frame).
+
+    Parameters
+    ----------
+    history : dict with any of ``"exx"``, ``"eyy"``, ``"exy"``: (F,) arrays
+    cycles : (F,) array, optional
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 3.8))
+    n = len(next(iter(history.values())))
+    x = np.arange(n) if cycles is None else np.asarray(cycles)
+    for k in ("exx", "eyy", "exy"):
+        if k in history:
+            ax.plot(x, history[k], "o-", label=k)
+    ax.set_xlabel("cycles" if cycles is not None else "frame (0 = earliest)",
+                  fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel("mean strain relative to the end (–)", fontsize=REPORT_FONTSIZE)
+    ax.tick_params(labelsize=REPORT_FONTSIZE)
+    ax.legend(fontsize=REPORT_FONTSIZE)
+    return ax
+
+
+def error_histograms(errors_um, ax=None, n_bins=40):
+    """Histograms of ``|height error|`` (nm) per method: shared bins, overlapping outlines.
+
+    Parameters
+    ----------
+    errors_um : dict ``{method: (N,) errors in µm}``
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 4))
+    vals = {m: np.abs(np.asarray(e, float)) * 1000 for m, e in errors_um.items()}
+    bins = shared_bins(list(vals.values()), n_bins)
+    for m, v in vals.items():
+        v = v[np.isfinite(v)]
+        ax.hist(v, bins=bins, histtype="step", lw=1.6, density=True, label=f"{m} ({len(v)})")
+    ax.set_xlabel("|height error| (nm)", fontsize=REPORT_FONTSIZE)
+    ax.set_ylabel("density", fontsize=REPORT_FONTSIZE)
+    ax.tick_params(labelsize=REPORT_FONTSIZE)
+    ax.legend(fontsize=REPORT_FONTSIZE)
+    return ax

@@ -75,7 +75,7 @@ def test_projections_and_profile_in_nm_with_legends():
     fig = plots.plot_height_projections(xyz, z, np.full(40, 0.01))
     assert fig.axes[0].get_ylabel().startswith("z (nm)")
     assert fig.axes[0].get_legend() is not None
-    ax = plots.plot_profile(np.arange(5.0), [0.2, 0.1, 0, -0.1, 1.5], np.full(5, 0.05))
+    ax = plots.plot_point_profile(np.arange(5.0), [0.2, 0.1, 0, -0.1, 1.5], np.full(5, 0.05))
     assert ax.get_ylabel() == "z (µm)"          # one value above 1 µm: µm
 
 
@@ -184,3 +184,57 @@ def test_show_static_jpeg_is_smaller_for_sem_images(monkeypatch):
     assert not plt.get_fignums()                  # closed after showing
     with pytest.raises(ValueError, match="fmt"):
         plots.show_static(plt.figure(), fmt="gif")
+
+
+def test_line_families_views_one_panel_per_view_and_a_note_without_image():
+    img = np.random.default_rng(9).random((50, 60))
+    fams = {"x": [[5, 5, 40, 8], [5, 20, 40, 24]], "y": [[10, 5, 12, 45], [30, 5, 33, 45]]}
+    fig = plots.show_line_families_views([img, None], [fams, fams])
+    assert len(fig.axes) == 2
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["family x",
+                                                                           "family y"]
+    assert "no image" in fig.axes[1].texts[0].get_text()
+
+
+def test_stability_figure_has_a_series_per_model():
+    st = {"sizes": np.array([8, 16, 32]), "f_angle_deg_median": np.array([3.0, 1.0, 0.3]),
+          "f_angle_deg_iqr": np.array([1.0, 0.5, 0.1]),
+          "epipole_angle_deg_median": np.array([2.0, 0.8, 0.2]),
+          "epipole_angle_deg_iqr": np.array([1.0, 0.4, 0.1])}
+    fig = plots.stability_figure({"affine": st, "8point": st})
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["F (affine)", "epipole / epipolar direction (affine)", "F (8point)",
+                      "epipole / epipolar direction (8point)"]
+
+
+def test_lateral_vs_depth_titles_carry_the_correlations_and_heights_in_nm():
+    rng = np.random.default_rng(10)
+    d = rng.uniform(0, 1, 40)
+    z = 0.05 * d + rng.normal(0, 0.005, 40)
+    fig = plots.lateral_vs_depth(d, z, d * 0.6, d * 0.8)
+    assert fig.axes[0].get_ylabel() == "z (nm)"
+    r = np.corrcoef(d, z)[0, 1]
+    assert fig.axes[0].get_title().startswith(f"Pearson {r:+.2f} [")
+    np.testing.assert_allclose(fig.axes[0].lines[0].get_ydata(), z * 1000)
+
+
+def test_strain_maps_directions_and_history():
+    gx, gy = np.arange(0, 100, 10.0), np.arange(0, 60, 10.0)
+    e = np.full((6, 10), 0.01)
+    fig = plots.strain_maps(gx, gy, {"E_xx": e, "E_yy": -e}, pixel_size_um=0.03)
+    assert [ax.get_title() for ax in fig.axes[:2]] == ["E_xx", "E_yy"]
+    assert fig.axes[0].get_xlabel() == "x (µm)"
+    assert fig.axes[0].images[0].get_extent()[1] == pytest.approx(90 * 0.03)
+    ax = plots.principal_directions(gx, gy, e, np.zeros_like(e))
+    assert ax.get_legend() is not None and ax.yaxis_inverted()
+    ax = plots.strain_history({"exx": [0.0, 0.001, 0.002], "eyy": [0, 0, 0.001]},
+                              cycles=[0, 1000, 2000])
+    assert ax.get_xlabel() == "cycles" and len(ax.lines) == 2
+
+
+def test_error_histograms_share_bins_in_nm():
+    rng = np.random.default_rng(11)
+    ax = plots.error_histograms({"raw": rng.normal(0, 0.09, 100), "auto": rng.normal(0, 0.01, 300)})
+    edges = [np.unique(p.get_path().vertices[:, 0]) for p in ax.patches]
+    assert np.array_equal(edges[0], edges[1]) and edges[0].max() > 100      # nm
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["raw (100)", "auto (300)"]

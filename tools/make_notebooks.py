@@ -5,6 +5,7 @@ Each notebook starts with a papermill ``parameters`` cell (experiment path, out_
 that defaults to the demo experiment in data_samples/.
 """
 
+import hashlib
 from pathlib import Path
 
 import nbformat
@@ -212,11 +213,7 @@ else:
     md("## Line families and their vanishing points (dotted: toward the vanishing point)"),
     code('''
 if lines is not None:
-    fig, axes = plt.subplots(1, len(lines), figsize=(7 * len(lines), 5.2))
-    for i, ax in enumerate(np.atleast_1d(axes)):
-        if images[i] is not None:
-            plots.show_line_families(images[i], lines[i], ax=ax, title=f"view {i}", vps=cal.vps[i])
-    fig.tight_layout()
+    fig = plots.show_line_families_views(images, lines, vps=cal.vps)
 '''),
     md("## Rotations: each view, and view i relative to view 0 (axis–angle and angles about the camera z, y, x axes)"),
     code('''
@@ -310,15 +307,14 @@ all of them (the paper saw F settle at about 30 points).
     code('''
 if corr is not None and len(x0) >= 12:
     sizes = np.unique(np.linspace(8, len(x0), 8).round().astype(int))
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+    stabs = {}
     for model in ("affine", "8point"):
         try:
-            st = epipolar.stability(x0, x1, sizes, n_resamples=stability_resamples, model=model,
-                                    progress=False)
-            plots.plot_stability(st, ax=ax, label=model)
+            stabs[model] = epipolar.stability(x0, x1, sizes, n_resamples=stability_resamples,
+                                              model=model, progress=False)
         except semlab.SemlabError as exc:
             print(model, ":", exc)
-    ax.set_title("F stability against the number of clicked points")
+    fig = plots.stability_figure(stabs)
 '''),
 ]
 
@@ -381,8 +377,8 @@ if res is not None and (res.crack_id >= 0).any():
     t = (xy - c) @ d
     p0, p1 = c + d * t.min(), c + d * t.max()
     prof = surface.profile_along_line(res.xyz_um[:, :2], res.z_um, p0, p1, width_um=1.0)
-    ax = plots.plot_profile(prof["distance_um"], prof["z_um"], res.z_err_um[prof["index"]],
-                            title="heights within 0.5 µm of the crack line")
+    ax = plots.plot_point_profile(prof["distance_um"], prof["z_um"], res.z_err_um[prof["index"]],
+                                  title="heights within 0.5 µm of the crack line")
 else:
     print("No crack points (crack_id) in the correspondences.")
 '''),
@@ -481,19 +477,7 @@ if tr is not None:
     sel = (tr.seed == "stereo") & np.isfinite(tr.d_um) & np.isfinite(tr.z_um)
     print(f"{sel.sum()} stereo points with a height and a displacement")
     if sel.sum() >= 5:
-        z, dx, dy, d = tr.z_um[sel], tr.dx_um[sel], tr.dy_um[sel], tr.d_um[sel]
-        fig, axes = plt.subplots(2, 2, figsize=(10, 8))
-        pairs = ((d, z, "|d| (µm)", "z (µm)"), (d, np.abs(z), "|d| (µm)", "|z| (µm)"),
-                 (dx, z, "dx (µm)", "z (µm)"), (dy, z, "dy (µm)", "z (µm)"))
-        for ax, (x, y, xl, yl) in zip(axes.ravel(), pairs):
-            ax.plot(x, y, ".", ms=4)
-            c = stats.correlation(x, y, n_boot=500)
-            ax.set_title(f"Pearson {c['pearson_r']:+.2f} [{c['pearson_ci'][0]:+.2f}, {c['pearson_ci'][1]:+.2f}]\\n"
-                         f"Spearman {c['spearman_rho']:+.2f} [{c['spearman_ci'][0]:+.2f}, {c['spearman_ci'][1]:+.2f}]",
-                         fontsize=9)
-            ax.set_xlabel(xl)
-            ax.set_ylabel(yl)
-        fig.tight_layout()
+        fig = plots.lateral_vs_depth(tr.d_um[sel], tr.z_um[sel], tr.dx_um[sel], tr.dy_um[sel])
     else:
         print("Too few stereo-seeded tracks survived to correlate lateral motion with depth.")
 '''),
@@ -522,27 +506,11 @@ if tr is not None and S:
     md("## Dense strain maps (Green–Lagrange, dimensionless) and principal directions"),
     code('''
 if S:
-    ext = [S["grid_x_px"][0], S["grid_x_px"][-1], S["grid_y_px"][-1], S["grid_y_px"][0]]
-    comps = (("E_xx", S["E"][..., 0, 0]), ("E_yy", S["E"][..., 1, 1]), ("E_xy", S["E"][..., 0, 1]),
-             ("max shear", S["max_shear"]))
-    fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
-    for ax, (name, v) in zip(axes, comps):
-        lim = np.nanpercentile(np.abs(v), 98) or 1e-6
-        im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
-        ax.set_title(name)
-        ax.set_xlabel("x (px)")
-        ax.set_ylabel("y (px)")
-        fig.colorbar(im, ax=ax, label="strain (–)")
-    fig.tight_layout()
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    GX, GY = np.meshgrid(S["grid_x_px"], S["grid_y_px"])
-    a = np.deg2rad(S["angle_deg"])
-    ax.quiver(GX, GY, S["e1"] * np.cos(a), S["e1"] * np.sin(a), color="tab:red", pivot="mid",
-              headwidth=0, angles="xy", label="e1 direction")
-    ax.invert_yaxis()
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
-    ax.set_title("first principal strain: direction and size")
+    maps = {"E_xx": S["E"][..., 0, 0], "E_yy": S["E"][..., 1, 1], "E_xy": S["E"][..., 0, 1],
+            "max shear": S["max_shear"]}
+    fig = plots.strain_maps(S["grid_x_px"], S["grid_y_px"], maps, exp.pixel_size_um)
+    ax = plots.principal_directions(S["grid_x_px"], S["grid_y_px"], S["e1"], S["angle_deg"],
+                                    exp.pixel_size_um)
 '''),
     md("## Sparse strain (tracks) and the surface strain with heights"),
     code('''
@@ -556,15 +524,7 @@ if S:
     md("## Strain against cycles (mean strain of each frame relative to the end state)"),
     code('''
 if S and "history" in S:
-    h = S["history"]
-    x = exp.series.cycles if exp.series.cycles is not None else np.arange(len(h["exx"]))
-    fig, ax = plt.subplots(figsize=(6, 3.8))
-    for k in ("exx", "eyy", "exy"):
-        if k in h:
-            ax.plot(x, h[k], "o-", label=k)
-    ax.set_xlabel("cycles" if exp.series.cycles is not None else "frame")
-    ax.set_ylabel("mean strain relative to the end (–)")
-    ax.legend()
+    ax = plots.strain_history(S["history"], exp.series.cycles)
 '''),
 ]
 
@@ -595,12 +555,7 @@ if truth is not None and exp.stereo is not None:
         e = validation.height_errors(r.z_um, zt, r.xyz_um[:, :2])
         rows[m] = (r, e)
         print(f"{m:>8}: {e['n']:5d} points, RMSE {e['rmse_um'] * 1000:6.1f} nm, p95 {e['p95_um'] * 1000:6.1f} nm")
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for m, (r, e) in rows.items():
-        ax.hist(np.abs(e["err_um"]) * 1000, bins=40, alpha=0.5, label=m, density=True)
-    ax.set_xlabel("|height error| (nm)")
-    ax.set_ylabel("density")
-    ax.legend()
+    ax = plots.error_histograms({m: e["err_um"] for m, (r, e) in rows.items()})
 '''),
     md("## Tracking"),
     code('''
@@ -618,10 +573,25 @@ if truth is not None and exp.series is not None:
 ]
 
 
+def _stable_ids(name, cells):
+    """Cell ids from the notebook name and the cell's text (not random), so that
+    regenerating the notebooks changes only the cells whose text changed."""
+    seen = set()
+    for cell in cells:
+        digest = hashlib.sha1(f"{name}\n{cell.cell_type}\n{cell.source}".encode()).hexdigest()
+        cid, k = digest[:8], 0
+        while cid in seen:
+            k += 1
+            cid = f"{digest[:8]}-{k}"
+        seen.add(cid)
+        cell.id = cid
+    return cells
+
+
 def main():
     HERE.mkdir(exist_ok=True)
     for name, cells in NOTEBOOKS.items():
-        nb = new_notebook(cells=cells)
+        nb = new_notebook(cells=_stable_ids(name, cells))
         nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
         nb.metadata["language_info"] = {"name": "python"}
         nbformat.write(nb, str(HERE / f"{name}.ipynb"))
