@@ -86,6 +86,7 @@ else:
     titles = [f"view {i}: tilt {'?' if exp.stereo.tilt_deg is None else f'{t:+.2f}°'}"
               for i, t in enumerate(exp.stereo.tilt_deg or [None] * len(exp.stereo.view_paths))]
     fig = plots.show_images(exp.views(), titles, exp.pixel_size_um)
+    plots.show_static(fig, fmt="jpeg")  # SEM images: JPEG keeps the report small
 '''),
     md("""
 ## The series during the test
@@ -101,6 +102,7 @@ else:
     cyc = exp.series.cycles
     titles = [f"frame {i}" + ("" if cyc is None else f" ({cyc[i]:g} cycles)") for i in idx]
     fig = plots.show_images([frames[i] for i in idx], titles, exp.pixel_size_um)
+    plots.show_static(fig, fmt="jpeg")  # SEM images: JPEG keeps the report small
 '''),
     md("## Key numbers (checked against the known answer on the demo)"),
     check('''
@@ -214,6 +216,7 @@ else:
     code('''
 if lines is not None:
     fig = plots.show_line_families_views(images, lines, vps=cal.vps)
+    plots.show_static(fig, fmt="jpeg")  # SEM images: JPEG keeps the report small
 '''),
     md("## Rotations: each view, and view i relative to view 0 (axis–angle and angles about the camera z, y, x axes)"),
     code('''
@@ -297,6 +300,7 @@ else:
     code('''
 if corr is not None and Fa is not None:
     fig = plots.show_epipolar_lines(views[0], views[1], Fa, x0, x1, title=" (affine F, refined points)")
+    plots.show_static(fig, fmt="jpeg")  # SEM images: JPEG keeps the report small
 '''),
     md("""
 ## Stability: how F settles with the number of points
