@@ -18,8 +18,10 @@ Cells
 
 Methods, all scored at the same points
 --------------------------------------
-Two point sets per cell: the **clicks** semlab refined (``pipeline.match_views(...,
-"refined")``) and the points semlab's **automatic** matching accepted (``"auto"``). At each
+Point sets per cell: the **clicks** semlab refined (``pipeline.run_stereo(...,
+method="refined")``) and the points semlab's **automatic** matching accepted (``"auto"``),
+each with fixed subsets and, where semlab has them, with information-sized subsets
+(``target_sigma_px=0.05``: ``clicks adaptive``, ``auto adaptive``). At each
 set's view-0 positions the references are computed in the same run on the same images:
 
 Where semlab's automatic matching finds no point (``featureless``), the references are scored
@@ -135,12 +137,26 @@ class Heights:
     seconds: float
 
 
-def semlab_heights(exp, method):
+def semlab_variants():
+    """(point set, method, matching keywords) of the semlab rows: fixed subsets, and the
+    information-sized (adaptive) subsets where this semlab has them."""
+    import inspect
+
+    from semlab import matching
+
+    out = [("clicks", "refined", {}), ("auto", "auto", {})]
+    if "target_sigma_px" in inspect.signature(matching.auto_match).parameters:
+        out += [("clicks adaptive", "refined", {"refine": {"target_sigma_px": 0.05}}),
+                ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05}})]
+    return out
+
+
+def semlab_heights(exp, method, **match_kw):
     """semlab's matches and predicted height σ (the one place semlab's API is called)."""
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False)
+        res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False, **match_kw)
     corr = exp.correspondences()
     n = len(corr.pts) if (method == "refined" and corr is not None) else 0
     return Heights(res.pts[:, :2], np.asarray(res.z_err_um, float), n,
@@ -253,12 +269,12 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
     flows, _ = dense_flows(v0, v1)
     clean = clean_view0(exp, regime, seed, size)
     rows = []
-    for set_name, method in (("clicks", "refined"), ("auto", "auto")):
+    for set_name, method, match_kw in semlab_variants():
         try:
-            sh = semlab_heights(exp, method)
+            sh = semlab_heights(exp, method, **match_kw)
         except Exception as exc:  # a failing method is a result, not a crash of the table
             rows.append({"set": set_name, "method": f"semlab {method}", "fail": str(exc)[:80]})
-            if set_name == "clicks":
+            if set_name.startswith("clicks") or set_name == "auto adaptive":
                 continue
             # the references are still scored, on the whole 8-px grid
             sh, set_name = None, "grid (semlab found none)"
@@ -269,13 +285,14 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
             sem = None
         else:
             p0 = sh.pts[:, 0]
-            cov = (len(p0) / sh.n_tried if sh.n_tried else np.nan) if set_name == "clicks" \
-                else coverage_auto(p0, v0.shape)
+            cov = (len(p0) / sh.n_tried if sh.n_tried else np.nan) \
+                if set_name.startswith("clicks") else coverage_auto(p0, v0.shape)
             sem = score(exp, sh.pts, tilts, sh.z_err_um)
         crb = float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
         refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
         df = refs["DeepFlow"]["rmse"]
-        own = [] if sem is None else [(f"semlab {method}", sem)]
+        label = f"semlab {method}" + (" adaptive" if match_kw else "")
+        own = [] if sem is None else [(label, sem)]
         for name, r in own + list(refs.items()):
             rows.append({"set": set_name, "method": name, "cov": cov, "df_ratio": r["rmse"] / df,
                          "crb": crb,
@@ -309,10 +326,11 @@ def table(cells):
 def summary(cells):
     """One line per cell: height RMSE (nm) of every method at the same points (the README's)."""
     lines = ["| regime | noise | tilts | automatic: semlab (N, coverage) | DeepFlow | ECC 15px "
-             "| DIS fine | CRB 21² | refined clicks: semlab | ECC 15px | DeepFlow |",
-             "|" + "---|" * 11]
+             "| DIS fine | CRB 21² | adaptive automatic: semlab (N) | DeepFlow "
+             "| refined clicks: semlab | ECC 15px | DeepFlow | adaptive refined: semlab | ECC 15px |",
+             "|" + "---|" * 16]
     for (regime, noise, tilts), rows in cells:
-        by = {(r["set"].split(" ")[0].replace("grid", "auto"), r["method"]): r for r in rows}
+        by = {(r["set"].replace("grid (semlab found none)", "auto"), r["method"]): r for r in rows}
 
         def rm(key):
             r = by.get(key)
@@ -322,10 +340,16 @@ def summary(cells):
         auto = (f"{rm(('auto', 'semlab auto'))} ({a['n']}, {a['cov']:.0%})"
                 if a and "fail" not in a else "none found (refs on the 8-px grid)")
         crb = _f(by.get(("auto", "DeepFlow"), {}).get("crb", np.nan), ".1f")
+        aa = by.get(("auto adaptive", "semlab auto adaptive"), {})
+        adaptive = (f"{rm(('auto adaptive', 'semlab auto adaptive'))} ({aa['n']})"
+                    if aa and "fail" not in aa else rm(("auto adaptive", "semlab auto adaptive")))
         lines.append(f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {auto} | "
                      f"{rm(('auto', 'DeepFlow'))} | {rm(('auto', 'ECC 15px'))} | "
-                     f"{rm(('auto', 'DIS fine'))} | {crb} | {rm(('clicks', 'semlab refined'))} | "
-                     f"{rm(('clicks', 'ECC 15px'))} | {rm(('clicks', 'DeepFlow'))} |")
+                     f"{rm(('auto', 'DIS fine'))} | {crb} | {adaptive} | "
+                     f"{rm(('auto adaptive', 'DeepFlow'))} | {rm(('clicks', 'semlab refined'))} | "
+                     f"{rm(('clicks', 'ECC 15px'))} | {rm(('clicks', 'DeepFlow'))} | "
+                     f"{rm(('clicks adaptive', 'semlab refined adaptive'))} | "
+                     f"{rm(('clicks adaptive', 'ECC 15px'))} |")
     return "\n".join(lines)
 
 
