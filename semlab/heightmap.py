@@ -124,6 +124,8 @@ class DenseParallax:
     sigma_scale : float
         Factor applied to the IC-GN σ (:func:`sigma_scale`).
     params : DenseParams
+    calibration : dict
+        The measured quantities of the call (see :func:`dense_parallax`), to reuse in tiles.
     """
 
     x1_px: np.ndarray
@@ -135,6 +137,7 @@ class DenseParallax:
     roi: tuple
     sigma_scale: float
     params: DenseParams
+    calibration: dict = field(default_factory=dict)
 
     def grid(self):
         """View-0 pixel coordinates ``(x0_px, y0_px)`` of the map, two ``(h, w)`` arrays."""
@@ -196,6 +199,8 @@ class HeightMap:
         return {"pixel_size_um": float(self.pixel_size_um), "roi": list(map(int, self.roi)),
                 "params": asdict(self.parallax.params),
                 "sigma_scale": float(self.parallax.sigma_scale),
+                "calibration": {k: np.asarray(v).tolist()
+                                for k, v in self.parallax.calibration.items()},
                 "height_model": {"coef": list(map(float, self.model.coef)),
                                  "rms_um": float(self.model.rms_um),
                                  "source": self.model.source},
@@ -412,7 +417,7 @@ def fuse_shiftable(values, sigma, zncc, valid, gradients, radius_px, step_px=2, 
 
 
 def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
-                   progress=False):
+                   calibration=None, progress=False):
     """Dense correspondences of the view-0 pixels of ``roi`` in view 1.
 
     Parameters
@@ -425,9 +430,19 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
     roi : (x0, y0, x1, y1), optional
         Half-open window of view-0 pixels; default the whole image.
     params : DenseParams, optional
-    guess : (H, W, 2) array, optional
-        Initial guess of every view-0 pixel's position in view 1 (whole-image grid);
-        overrides ``seeds``/flow (e.g. computed once for all tiles).
+    guess : (H, W, 2) array or the tuple returned by :func:`initial_guess`, optional
+        Initial guess of every view-0 pixel's position in view 1 (whole-image grid), and
+        with the tuple the warp gradients too; overrides ``seeds``/flow. For tiles: compute
+        ``initial_guess(view0, view1, seeds)`` once and pass it, with one ``calibration``,
+        to every tile: the tiles then give the values of one whole-image call (test
+        ``test_tiles_with_a_shared_guess_equal_the_whole_image``).
+    calibration : dict, optional
+        Quantities otherwise measured in this call, to share between tiles (e.g. the
+        ``calibration`` of a result on a representative window): ``sigma_factor``
+        (:func:`sigma_scale`), ``zncc_tau`` (absolute fusion τ), ``noise_sigma`` (image
+        noise of the two views, for the IC-GN σ), ``coef_offset`` (view 1's B-spline
+        coefficient mean). Missing keys are measured: the first two in the window, the
+        last two on the whole images.
     progress : bool
 
     Returns
@@ -459,12 +474,15 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
             g, grad, _ = initial_guess(v0, v1, seeds, h)
             g, grad = g[wy0:wy1, wx0:wx1], grad[wy0:wy1, wx0:wx1]
     else:
-        gg = np.asarray(guess, float)
-        if gg.shape != (hgt, wid, 2):
+        gg, gr = (guess[0], guess[1]) if isinstance(guess, tuple) else (guess, None)
+        gg = np.asarray(gg, float)
+        if gg.shape != (hgt, wid, 2) or (gr is not None and np.shape(gr) != (hgt, wid, 4)):
             raise SemlabError(f"guess must be an (H, W, 2) = ({hgt}, {wid}, 2) array of view-1 "
-                              f"positions, got shape {gg.shape}")
+                              "positions or the (guess, grad, fb_err) tuple of initial_guess, "
+                              f"got shape {gg.shape}")
         g = gg[wy0:wy1, wx0:wx1]
-        grad = np.zeros(g.shape[:2] + (4,))
+        grad = (np.zeros(g.shape[:2] + (4,)) if gr is None
+                else np.asarray(gr, float)[wy0:wy1, wx0:wx1])
     gh, gw = g.shape[:2]
     yy, xx = np.mgrid[wy0:wy1, wx0:wx1]
     pts = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
@@ -482,8 +500,19 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
     cur = v1[cy0:cy1, cx0:cx1]
     init = np.zeros((len(pts), 6))
     init[:, [1, 2, 4, 5]] = grad.reshape(-1, 4)
+    cal = dict(calibration or {})
+    whole = roi == (0, 0, wid, hgt)
+    if "noise_sigma" not in cal:
+        from .noise import image_noise_sigma
+
+        cal["noise_sigma"] = (image_noise_sigma(v0), image_noise_sigma(v1))
+    if "coef_offset" not in cal and not whole:
+        from scipy import ndimage
+
+        cal["coef_offset"] = float(ndimage.spline_filter(v1, order=3, mode="mirror").mean())
     r = subset.icgn_refine(ref, cur, pts - [wx0, wy0], gflat - [cx0, cy0], half_window=h,
                            max_iter=p.max_iter, tol_px=p.tol_px, init_warp=init,
+                           noise_sigma=cal["noise_sigma"], coef_offset=cal.get("coef_offset"),
                            progress=progress)
     x1 = (r.pts[:, 0] + cx0).reshape(gh, gw)
     y1 = (r.pts[:, 1] + cy0).reshape(gh, gw)
@@ -493,7 +522,8 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
     ok = r.converged.reshape(gh, gw) & (zn >= p.min_zncc) & np.isfinite(sx)
     par = x1 - xx
     ok = _drop_outliers(par, sx, ok, p.outlier_px)
-    k = sigma_scale(x1, sx, ok, h)
+    k = float(cal["sigma_factor"]) if "sigma_factor" in cal else sigma_scale(x1, sx, ok, h)
+    cal["sigma_factor"] = k
     radius = h - 1 if p.fusion_radius_px is None else int(p.fusion_radius_px)
     vals = np.stack([x1 - xx, y1 - yy], -1)
     sigs = np.stack([k * sx, k * sy], -1)
@@ -501,9 +531,11 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
         wg = np.where(ok[..., None], r.warp.reshape(gh, gw, 6), np.nan)
         grads = np.stack([np.stack([_nanmedian5(wg[..., 1]), _nanmedian5(wg[..., 2])], -1),
                           np.stack([_nanmedian5(wg[..., 4]), _nanmedian5(wg[..., 5])], -1)], 2)
-        tau = p.zncc_tau * float(np.median(1.0 - zn[ok])) if ok.any() else 1.0
+        if "zncc_tau" not in cal:
+            cal["zncc_tau"] = max(1e-6, p.zncc_tau * float(np.median(1.0 - zn[ok]))
+                                  if ok.any() else 1.0)
         fused, fsig, best, support = fuse_shiftable(vals, sigs, zn, ok, grads, radius,
-                                                    p.fusion_step_px, max(tau, 1e-6))
+                                                    p.fusion_step_px, cal["zncc_tau"])
         valid = support > 0
     else:
         fused = np.where(ok[..., None], vals, np.nan)
@@ -517,7 +549,7 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
     return DenseParallax(x1_px=nanv(gx + fused[sl][..., 0]), y1_px=nanv(gy + fused[sl][..., 1]),
                          sigma_px=nanv(fsig[sl][..., 0]), sigma_y_px=nanv(fsig[sl][..., 1]),
                          valid=valid, zncc=np.where(valid, best[sl], -1.0), roi=roi,
-                         sigma_scale=k, params=p)
+                         sigma_scale=k, params=p, calibration=cal)
 
 
 # ------------------------------------------------------------------------------ heights
@@ -679,7 +711,8 @@ def write_heightmap_results(result, out_dir, overwrite=False, regions=None, band
     out_dir : path
     regions : dict name -> (x0, y0, x1, y1) or (H, W) bool mask, optional
     bands : list of semlab.metrology.Band, optional
-        Default: detected in the map (:func:`semlab.metrology.detect_bands`).
+        Default: detected in the map (:func:`semlab.metrology.map_bands`; pass the clicked
+        cracks' bands from :func:`semlab.metrology.map_bands` with ``pts_px, crack_id``).
 
     Returns
     -------
@@ -710,7 +743,7 @@ def write_heightmap_results(result, out_dir, overwrite=False, regions=None, band
     table = metrology.surface_parameters(result.z_um, s, regions=regions)
     metrology.write_surface_parameters_csv(paths["surface_parameters.csv"], table)
     if bands is None:
-        bands = metrology.detect_bands(result.z_um, s)
+        bands = metrology.map_bands(result.z_um, s, sigma_um=result.sigma_um)
     prof = [metrology.band_profile(result.z_um, result.sigma_um, s, b) for b in bands]
     metrology.write_bands_csv(paths["bands.csv"], prof)
     return paths

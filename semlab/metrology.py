@@ -34,6 +34,7 @@ __all__ = [
     "Band",
     "bands_from_clicks",
     "detect_bands",
+    "map_bands",
     "band_profile",
     "write_bands_csv",
     "profile_between",
@@ -209,6 +210,21 @@ def bands_from_clicks(pts_px, crack_id, half_width_px=25.0):
     return out
 
 
+def map_bands(z_um, pixel_size_um, sigma_um=None, pts_px=None, crack_id=None, detect=True,
+              **detect_kw):
+    """The bands of a map: those of the clicked cracks (``crack_id`` >= 0, see
+    :func:`bands_from_clicks`) first, then (``detect``) those found in the map
+    (:func:`detect_bands`), numbered on after the cracks' ids and marked ``"detected"``."""
+    out = []
+    if pts_px is not None and crack_id is not None:
+        out = bands_from_clicks(pts_px, crack_id)
+    if detect:
+        start = max([b.band_id for b in out], default=-1) + 1
+        for k, b in enumerate(detect_bands(z_um, pixel_size_um, sigma_um=sigma_um, **detect_kw)):
+            out.append(Band(start + k, b.p0_px, b.p1_px, b.source, b.half_width_px))
+    return out
+
+
 def _dominant_angle(z):
     """Direction (radians, from x, y down) along which the height varies least: the
     eigenvector of the smallest eigenvalue of the gradient structure tensor."""
@@ -249,6 +265,10 @@ def detect_bands(z_um, pixel_size_um, sigma_um=None, max_bands=12, min_prominenc
     3. Extrusions are the peaks and intrusions the valleys of that profile with a
        prominence above ``min_prominence_um`` (default 5× the median σ of the map, or
        10 nm without ``sigma_um``) (``scipy.signal.find_peaks``).
+    4. Each trace is re-centred on the extremum of its own profile across it
+       (:func:`band_profile`), kept only if that extremum reaches ``min_prominence_um``
+       above (below) the reference surface, and dropped if it lands within half a profile
+       width of a stronger one.
 
     Returns
     -------
@@ -288,24 +308,44 @@ def detect_bands(z_um, pixel_size_um, sigma_um=None, max_bands=12, min_prominenc
                                       distance=max(3, int(hw / 2)))
         for p_, pr in zip(pk, props["prominences"]):
             if good[p_]:
-                found.append((pr, p_ + lo + 0.5))
+                found.append((pr, p_ + lo + 0.5, sign))
     found.sort(key=lambda t: -t[0])
-    bands = []
-    for pr, c in found[:max_bands]:
+    # re-centre each trace on its own extremum across it (the image-wide projection can
+    # put it on a shoulder), then drop traces that landed on an earlier one
+    bands, offsets = [], []
+    for pr, c, sign in found:
         seg = _clip_line(c, d, n, z.shape)
-        if seg is not None:
-            bands.append(Band(len(bands), seg[0], seg[1], "detected", hw))
+        if seg is None:
+            continue
+        prof = band_profile(z, None, 1.0, Band(0, seg[0], seg[1], "detected", hw))
+        inner = (np.abs(prof["distance_um"]) <= 0.6 * hw) & (prof["count"] > 0)
+        if not inner.any():
+            continue
+        zi = np.where(inner, sign * prof["z_um"], -np.inf)
+        if zi.max() < min_prominence_um:            # no band of this sign along the trace
+            continue
+        c = c + float(prof["distance_um"][int(np.argmax(zi))])
+        seg = _clip_line(c, d, n, z.shape)
+        if seg is None or any(abs(c - o) < hw / 2 for o in offsets):
+            continue
+        offsets.append(c)
+        bands.append(Band(len(bands), seg[0], seg[1], "detected", hw))
+        if len(bands) == max_bands:
+            break
     return bands
 
 
-def band_profile(z_um, sigma_um, pixel_size_um, band, bin_px=1.0, corr_px=15.0):
+def band_profile(z_um, sigma_um, pixel_size_um, band, bin_px=1.0, corr_px=15.0,
+                 baseline="reference"):
     """Mean height profile across a band trace and its extrusion, intrusion and width.
 
     The pixels within ``band.half_width_px`` of the trace (and between its end points) are
     binned by their signed distance across it; each bin's mean is the profile.
 
-    - baseline: median of the profile beyond 0.75 ``half_width_px`` (the surface beside
-      the band);
+    - baseline: ``"reference"`` (default) the reference surface of the map, z = 0 (heights
+      are already above it; the slip bands of a fatigued grain are often closer together
+      than a profile is long, so "beside the band" is another band), or ``"local"``: the
+      median of the profile beyond 0.75 ``half_width_px``, with its own σ;
     - extrusion height = max(profile) − baseline, intrusion depth = baseline − min(profile)
       within 0.6 ``half_width_px`` of the trace (the band and a crack along its edge);
     - width: full width at half of the dominant feature (extrusion or intrusion), from
@@ -369,10 +409,15 @@ def band_profile(z_um, sigma_um, pixel_size_um, band, bin_px=1.0, corr_px=15.0):
     if outer.sum() < 2 or inner.sum() < 2:
         out.update(nan)
         return out
-    base = float(np.median(mean[outer]))
-    n_ind = max(1.0, outer.sum() * bin_px / max(1.0, corr_px))   # independent bins
-    base_err = float(1.2533 * np.hypot(np.sqrt(np.mean(sig[outer] ** 2)),
-                                       np.std(mean[outer])) / np.sqrt(n_ind))
+    if baseline == "reference":
+        base, base_err = 0.0, 0.0
+    elif baseline == "local":
+        base = float(np.median(mean[outer]))
+        n_ind = max(1.0, outer.sum() * bin_px / max(1.0, corr_px))   # independent bins
+        base_err = float(1.2533 * np.hypot(np.sqrt(np.mean(sig[outer] ** 2)),
+                                           np.std(mean[outer])) / np.sqrt(n_ind))
+    else:
+        raise SemlabError(f"baseline must be 'reference' or 'local', got {baseline!r}")
     zi = np.where(inner, mean, np.nan)
     i_hi, i_lo = int(np.nanargmax(zi)), int(np.nanargmin(zi))
     ext, intr = float(mean[i_hi] - base), float(base - mean[i_lo])

@@ -106,6 +106,19 @@ def test_roi_gives_the_values_of_the_whole_image(scene_pair, scene_parallax):
     assert gx[0, 0] == 40 and gy[0, 0] == 30
 
 
+def test_tiles_with_a_shared_guess_equal_the_whole_image(scene_pair):
+    i0, i1, _, _ = scene_pair
+    g = hm.initial_guess(i0, i1)
+    whole = hm.dense_parallax(i0, i1, guess=g)
+    tiles = [(0, 0, 72, 56), (72, 0, 144, 56), (0, 56, 72, 112), (72, 56, 144, 112)]
+    for roi in tiles:
+        t = hm.dense_parallax(i0, i1, roi=roi, guess=g, calibration=whole.calibration)
+        sl = (slice(roi[1], roi[3]), slice(roi[0], roi[2]))
+        assert np.array_equal(t.valid, whole.valid[sl])
+        np.testing.assert_allclose(t.x1_px[t.valid], whole.x1_px[sl][t.valid], atol=1e-9)
+        np.testing.assert_allclose(t.sigma_px[t.valid], whole.sigma_px[sl][t.valid], rtol=1e-6)
+
+
 def test_bad_inputs_raise():
     img = _texture((40, 50))
     with pytest.raises(ImageError, match="one shape"):

@@ -95,6 +95,12 @@ def test_band_profile_measures_a_known_ribbon():
     assert p["width_um"] == pytest.approx(12.0 * S, abs=max(0.03, 3 * p["width_err_um"]))
     assert 0 < p["extrusion_err_um"] < 0.01 and 0 < p["width_err_um"] < 0.05
     assert p["length_um"] == pytest.approx(120 * S)
+    loc = mt.band_profile(noisy + 0.03, sig, S, band, baseline="local")   # an offset surface
+    assert loc["baseline_um"] == pytest.approx(0.03, abs=0.005)
+    assert loc["extrusion_um"] == pytest.approx(p["extrusion_um"], abs=0.005)
+    assert loc["extrusion_err_um"] > p["extrusion_err_um"]           # the baseline's σ adds
+    with pytest.raises(SemlabError, match="baseline"):
+        mt.band_profile(noisy, sig, S, band, baseline="median")
     # the groove lies on the positive side (n > 0 is to the right of p0 -> p1 with y down)
     assert p["distance_um"][np.nanargmin(p["z_um"])] > 0
 
@@ -126,6 +132,15 @@ def test_bands_from_clicks():
     assert bands[0].angle_deg == pytest.approx(np.degrees(np.arctan2(0.6, 0.8)))
     with pytest.raises(GeometryError):
         mt.bands_from_clicks(pts, cid[:-1])
+
+
+def test_map_bands_puts_clicked_cracks_first():
+    z = _ribbon(angle_deg=35.0, amp=0.15)
+    pts = np.array([[10.0, 10.0], [60.0, 40.0], [110.0, 70.0]])
+    bands = mt.map_bands(z, S, pts_px=pts, crack_id=np.array([4, 4, 4]), min_prominence_um=0.05)
+    assert bands[0].source == "crack_id" and bands[0].band_id == 4
+    assert [b.band_id for b in bands[1:]] == list(range(5, 5 + len(bands) - 1))
+    assert len(bands) >= 2 and all(b.source == "detected" for b in bands[1:])
 
 
 def test_bands_csv(tmp_path):
@@ -166,4 +181,28 @@ def test_band_plots():
     assert len(ax.lines) == len(bands)
     ax = plots.plot_profile(mt.profile_between(z, None, (0, 0), (199, 149), S))
     assert ax.get_ylabel() == "z (nm)" and len(ax.collections) == 1
+    plt.close("all")
+
+
+def test_profile_tool_clicks_and_set_points():
+    import matplotlib.pyplot as plt
+    from types import SimpleNamespace
+
+    from semlab.profile_tool import ProfileTool
+
+    z = _ribbon()
+    tool = ProfileTool(z, np.full(z.shape, 0.004), S)
+    click = lambda x, y, ax=tool.ax_map: SimpleNamespace(inaxes=ax, xdata=x, ydata=y, button=1)  # noqa: E731
+    tool._on_click(click(20.0, 20.0))
+    assert tool.profile is None and len(tool.points) == 1
+    tool._on_click(click(5.0, 5.0, ax=tool.ax_profile))      # clicks beside the map are ignored
+    assert len(tool.points) == 1
+    tool._on_click(click(180.0, 130.0))
+    ref = mt.profile_between(z, np.full(z.shape, 0.004), (20, 20), (180, 130), S)
+    np.testing.assert_allclose(tool.profile["z_um"], ref["z_um"])
+    assert len(tool.ax_profile.lines) >= 1 and tool.ax_profile.get_ylabel() == "z (nm)"
+    tool._on_click(click(30.0, 30.0))                        # a third click starts again
+    assert len(tool.points) == 1
+    prof = tool.set_points((0, 75), (199, 75))
+    assert prof["distance_um"][-1] == pytest.approx(199 * S)
     plt.close("all")

@@ -399,6 +399,60 @@ if res is not None and exp.correspondences() is not None:
     print(f"raw clicks: {len(raw.z_um)} points, median 1σ {np.median(raw.z_err_um) * 1000:.0f} nm "
           f"(a 0.5 px click error is ~{0.5 * 2 ** 0.5 * exp.pixel_size_um / np.sin(np.deg2rad(np.ptp(raw.tilt_deg))) * 1000:.0f} nm of height)")
 '''),
+    md("""
+## Dense height map: every pixel of view 0
+
+An affine IC-GN subset (15×15 px) is matched at every pixel, seeded by the points above; the
+subsets containing a pixel are fused with weights that drop those straddling a slip-band step
+(so steps are not smoothed by the subset), and every pixel gets a 1σ whose scale is measured
+on the map itself. Heights are above the same reference plane as the points. Written by
+`semlab run` as `heightmap.tif`, `heightmap_sigma.tif`, `heightmap.x3p`, `heightmap.gsf`,
+`heightmap.ply`, `surface_parameters.csv` and `bands.csv`.
+"""),
+    code('''
+from semlab import heightmap, metrology
+hm = None
+if res is not None:
+    hm = heightmap.heightmap_from_stereo(exp, res)
+    print(f"measured {100 * hm.valid.mean():.1f} % of view 0; median 1σ {np.nanmedian(hm.sigma_um) * 1e3:.1f} nm "
+          f"(σ scale {hm.parallax.sigma_scale:.2f} from the map itself)")
+    for n in hm.notes:
+        print("note:", n)
+    bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
+                                pts_px=res.pts[:, 0], crack_id=res.crack_id)
+    if out_dir:
+        for f in heightmap.write_heightmap_results(hm, out_dir, bands=bands).values():
+            print("wrote", f)
+    plots.show_heightmap_panels(hm.z_um, hm.sigma_um, exp.pixel_size_um)
+'''),
+    code('''
+if hm is not None:
+    plots.show_hillshade(hm.z_um, exp.pixel_size_um)
+'''),
+    md("## Areal parameters (ISO 25178-2, `surfalize`) and profiles across the bands"),
+    code('''
+if hm is not None:
+    for r in metrology.surface_parameters(hm.z_um, exp.pixel_size_um):
+        print(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()))
+    profs = [metrology.band_profile(hm.z_um, hm.sigma_um, exp.pixel_size_um, b) for b in bands]
+    plots.show_bands(hm.z_um, bands, pixel_size_um=exp.pixel_size_um)
+    if profs:
+        plots.plot_band_profiles(profs[:6])
+'''),
+    md("""
+## Profile tool
+
+Run `%matplotlib widget` first, then click two points on the map: the profile between them
+appears with its ±1σ band (a third click starts a new one). Here it shows one segment across
+the bands.
+"""),
+    code('''
+if hm is not None:
+    from semlab.profile_tool import ProfileTool
+    tool = ProfileTool(hm.z_um, hm.sigma_um, exp.pixel_size_um, width_px=3)
+    h, w = hm.z_um.shape
+    tool.set_points((0.35 * w, 0.85 * h), (0.65 * w, 0.15 * h))
+'''),
 ]
 
 TRACK_SETUP = '''

@@ -1,0 +1,132 @@
+"""Dense height map against the truth and against OpenCV DeepFlow, in the same run.
+
+For each scene: a synthetic experiment (semlab.synth / semlab.realtex) is written, the
+normal run computes the sparse stereo result (automatic matching + clicks), then
+
+- semlab's dense map (:func:`semlab.heightmap.heightmap_from_stereo`), and
+- OpenCV DeepFlow (Weinzaepfel et al. 2013) on the same contrast-normalised views, its
+  x-flow turned into heights by the *same* height model (same reference plane),
+
+are compared with ``truth/height_view0.npy`` over the interior (a 20 px border removed),
+after removing the best-fit plane of each error map (the plane is the reference-surface
+choice, not an error of the matching). Reported: measured fraction of the interior, RMSE of
+semlab on its measured pixels, DeepFlow's RMSE on the same pixels, their ratio (target
+<= 0.8), and the share of pixels within 1σ / 2σ of the truth (target 60-75 % within 1σ).
+
+Run:  python benchmarks/dense_map.py [--quick]     (about 2 minutes per scene on 2 cores)
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from semlab import experiment, heightmap, pipeline, synth
+from semlab.matching import _norm8
+
+BORDER = 20
+
+
+def scenes(quick):
+    out = [("speckle ±5° seed 0", dict(seed=0)),
+           ("speckle ±5° seed 1", dict(seed=1)),
+           ("speckle ±5° seed 2", dict(seed=2)),
+           ("speckle 0/+8° seed 0", dict(seed=0, tilts_deg=(0.0, 8.0))),
+           ("polished ±5° seed 0, realistic noise", dict(seed=0, texture="polished",
+                                                        detector="realistic"))]
+    real = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_sem"
+    if real.exists():
+        out.append(("real FEI texture ±5° seed 0", dict(seed=0, source="fei")))
+    return out[:1] if quick else out
+
+
+def make(folder, kw):
+    kw = dict(kw)
+    common = dict(n_frames=0, n_clicks=30, progress=False)
+    if "source" in kw:
+        from semlab import realtex
+
+        realtex.make_experiment(folder, **common, **kw)
+    else:
+        synth.make_experiment(folder, write_block=False, **common, **kw)
+
+
+def plane_free(err, mask):
+    yy, xx = np.nonzero(mask)
+    A = np.column_stack([xx, yy, np.ones(len(xx))]).astype(float)
+    c, *_ = np.linalg.lstsq(A, err[mask], rcond=None)
+    return err[mask] - A @ c
+
+
+def deepflow_heights(views, model):
+    import cv2
+
+    a, b = np.asarray(views[0], float), np.asarray(views[1], float)
+    flow = cv2.optflow.createOptFlow_DeepFlow().calc(_norm8(a, 14, 2.0), _norm8(b, 14, 2.0), None)
+    yy, xx = np.mgrid[0:a.shape[0], 0:a.shape[1]].astype(float)
+    return model.height(xx + flow[..., 0], yy + flow[..., 1], xx, yy)
+
+
+def run_scene(name, kw, tmp):
+    folder = Path(tmp) / name.split()[0] / str(abs(hash(name)))
+    make(folder, kw)
+    exp = experiment.load(folder)
+    truth = np.load(folder / "truth" / "height_view0.npy").astype(float)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")      # clicks that fail refinement are reported there
+        st = pipeline.run_stereo(exp, n_boot=0, progress=False)
+    t_sparse = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hm = heightmap.heightmap_from_stereo(exp, st)
+    t_dense = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    zd = deepflow_heights(exp.views(), hm.model)
+    t_deep = time.perf_counter() - t0
+    interior = np.zeros(truth.shape, bool)
+    interior[BORDER:-BORDER, BORDER:-BORDER] = True
+    m = interior & hm.valid
+    e_ours = plane_free(hm.z_um.astype(float) - truth, m)
+    e_deep = plane_free(zd - truth, m)
+    e_deep_all = plane_free(zd - truth, interior & np.isfinite(zd))
+    sig = hm.sigma_um[m].astype(float)
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    return dict(scene=name, measured=float(m.sum() / interior.sum()), ours_nm=1e3 * rms(e_ours),
+                deep_nm=1e3 * rms(e_deep), deep_all_nm=1e3 * rms(e_deep_all),
+                ratio=rms(e_ours) / rms(e_deep), in1=float(np.mean(np.abs(e_ours) < sig)),
+                in2=float(np.mean(np.abs(e_ours) < 2 * sig)), sigma_scale=hm.parallax.sigma_scale,
+                n_sparse=len(st.pts), t_sparse=t_sparse, t_dense=t_dense, t_deep=t_deep,
+                median_sigma_nm=1e3 * float(np.median(sig)))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="first scene only")
+    args = ap.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, kw in scenes(args.quick):
+            r = run_scene(name, kw, tmp)
+            rows.append(r)
+            print(f"{name}: measured {100 * r['measured']:.1f} %, semlab {r['ours_nm']:.1f} nm, "
+                  f"DeepFlow {r['deep_nm']:.1f} nm (ratio {r['ratio']:.2f}), within 1σ "
+                  f"{100 * r['in1']:.0f} %, 2σ {100 * r['in2']:.0f} %, σ scale "
+                  f"{r['sigma_scale']:.2f}, times {r['t_sparse']:.0f}/{r['t_dense']:.0f}/"
+                  f"{r['t_deep']:.0f} s", flush=True)
+    print("\n| scene | measured interior | semlab RMSE | DeepFlow RMSE (same pixels) | ratio "
+          "| within 1σ / 2σ | dense time |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['scene']} | {100 * r['measured']:.1f} % | {r['ours_nm']:.1f} nm | "
+              f"{r['deep_nm']:.1f} nm | {r['ratio']:.2f} | {100 * r['in1']:.0f} / "
+              f"{100 * r['in2']:.0f} % | {r['t_dense']:.0f} s |")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
