@@ -397,7 +397,11 @@ class TrackingResult:
     frame_from : (N,) int
         Earliest frame where the track is valid (-1: never valid besides the last frame).
     dx_um, dy_um, d_um : (N,) float
-        Displacement from ``frame_from`` to the last frame (NaN where ``frame_from`` = -1).
+        Displacement from ``frame_from`` to the last frame (NaN where ``frame_from`` = -1),
+        the stage's rigid-body motion removed (see
+        :func:`semlab.displacement.earliest_displacements`).
+    dx_raw_um, dy_raw_um, d_raw_um : (N,) float
+        The same in raw pixel coordinates (stage drift included).
     registration : dict
         Stereo view 0 → last frame registration (``A`` (2, 3), ``residual_px``), or empty.
     strain : dict
@@ -418,6 +422,9 @@ class TrackingResult:
     strain: dict
     pixel_size_um: float
     cycles: np.ndarray | None = None
+    dx_raw_um: np.ndarray | None = None
+    dy_raw_um: np.ndarray | None = None
+    d_raw_um: np.ndarray | None = None
 
 
 def earliest_valid_frame(valid):
@@ -540,7 +547,7 @@ def stereo_points(exp, out_dir=None, progress=False, **kw):
 
 
 def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
-                 gauge_length_px=None, progress=True):
+                 gauge_length_px=None, progress=True, register="similarity"):
     """Track points backwards through the series and derive displacements and strain.
 
     Parameters
@@ -553,12 +560,19 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
         Pyramidal Lucas–Kanade, or the DIC-grade IC-GN subset matching.
     corner_kw, track_kw : dict, optional
         Passed to :func:`semlab.tracking.shi_tomasi_seeds` / :func:`~semlab.tracking.track_reverse`.
+    register : {"similarity", "affine", "translation", None}
+        Register every frame to the last one first and track in the registered geometry
+        (stage drift); None: track in the raw frames. ``"similarity"`` (shift, rotation,
+        magnification: a stage) is the default because an affine fit to features on a
+        slip-banded surface can take a shear and a 3 % stretch from the material's own,
+        non-uniform motion; ``"affine"`` also absorbs a linear scan drift.
 
     Returns
     -------
     TrackingResult
     """
     from . import tracking
+    from .displacement import earliest_displacements
     from .registration import register_points
 
     if exp.series is None:
@@ -586,13 +600,12 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
 
     # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
     tracks = tiled_track_reverse(frames, seeds, method=method, seed_kind=kind,
-                                 progress=progress, **(track_kw or {}))
+                                 progress=progress, register=register,
+                                 **(track_kw or {}))
     s = exp.pixel_size_um
     first = earliest_valid_frame(tracks.valid)
     n = tracks.n_tracks
-    start = tracks.xy[np.clip(first, 0, None), np.arange(n)]
-    d = (tracks.xy[-1] - start) * s
-    d[first < 0] = np.nan
+    disp = earliest_displacements(tracks, s, frame_from=first)
     z = np.full(n, np.nan)
     if stereo is not None:
         z[stereo_index >= 0] = np.asarray(stereo[1])[stereo_index[stereo_index >= 0]]
@@ -617,7 +630,9 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
     else:
         warnings.warn("no frame before the last has enough valid tracks for strain", stacklevel=2)
     return TrackingResult(tracks=tracks, seed=kind, stereo_index=stereo_index, z_um=z,
-                          frame_from=first, dx_um=d[:, 0], dy_um=d[:, 1], d_um=np.hypot(d[:, 0], d[:, 1]),
+                          frame_from=first, dx_um=disp["dx_um"], dy_um=disp["dy_um"], d_um=disp["d_um"],
+                          dx_raw_um=disp["dx_raw_um"], dy_raw_um=disp["dy_raw_um"],
+                          d_raw_um=disp["d_raw_um"],
                           registration=registration, strain=strain, pixel_size_um=s,
                           cycles=exp.series.cycles)
 
@@ -636,33 +651,37 @@ def tracking_strain_history(tracks, cycles, pixel_size_um):
 
 
 def write_tracking_results(result, out_dir, overwrite=False):
-    """Write ``tracks.csv``, ``displacements.csv`` and ``strain.npz`` into ``out_dir``.
+    """Write ``tracks.csv``, ``displacements.csv``, ``strain.npz`` and, when the frames were
+    registered, ``drift.csv`` into ``out_dir``.
 
     ``tracks.csv``: ``track_id,seed,frame,x_px,y_px,fb_error_px,valid`` (frame 0 = earliest).
-    ``displacements.csv``: ``track_id,seed,x_px,y_px,frame_from,dx_um,dy_um,d_um,z_um`` with
-    the last-frame position and the displacement from ``frame_from`` to the last frame
-    (``z_um`` for stereo-seeded tracks, empty otherwise).
+    ``displacements.csv``: :data:`semlab.displacement.DISPLACEMENTS_CSV_COLUMNS`, with the
+    last-frame position and the displacement from ``frame_from`` to the last frame
+    (``z_um`` for stereo-seeded tracks, empty otherwise; rigid stage motion removed, then
+    the raw columns). ``drift.csv``: :func:`semlab.registration.write_drift_csv`.
     """
     from . import tracking
+    from .displacement import write_displacements_csv
+    from .registration import write_drift_csv
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    reg = getattr(result.tracks, "registration", None)
     paths = [out / "tracks.csv", out / "displacements.csv", out / "strain.npz"]
+    paths += [out / "drift.csv"] if reg is not None else []
     for p in paths:
         if p.exists() and not overwrite:
             raise SemlabError(f"{p}: exists already; write results to a new folder")
     tracking.write_tracks_csv(paths[0], result.tracks, seed_kind=result.seed, overwrite=overwrite)
-    xy = result.tracks.xy[-1]
-
-    def fmt(v):
-        return "" if not np.isfinite(v) else f"{v:.6g}"
-
-    rows = ["track_id,seed,x_px,y_px,frame_from,dx_um,dy_um,d_um,z_um"]
-    for i in range(len(result.seed)):
-        rows.append(",".join([str(i), str(result.seed[i]), f"{xy[i, 0]:.4f}", f"{xy[i, 1]:.4f}",
-                              str(int(result.frame_from[i])), fmt(result.dx_um[i]), fmt(result.dy_um[i]),
-                              fmt(result.d_um[i]), fmt(result.z_um[i])]))
-    paths[1].write_text("\n".join(rows) + "\n")
+    disp = {"frame_from": result.frame_from}
+    for k in ("dx", "dy", "d"):
+        disp[f"{k}_um"] = getattr(result, f"{k}_um")
+        raw = getattr(result, f"{k}_raw_um")
+        disp[f"{k}_raw_um"] = disp[f"{k}_um"] if raw is None else raw
+    write_displacements_csv(paths[1], result.tracks, disp, seed_kind=result.seed, z_um=result.z_um,
+                            overwrite=overwrite)
+    if reg is not None:
+        write_drift_csv(paths[3], reg, overwrite=overwrite)
     flat = {}
     for k, v in result.strain.items():
         if isinstance(v, dict):

@@ -19,6 +19,7 @@ __all__ = [
     "stability_figure", "lateral_vs_depth", "strain_maps", "principal_directions",
     "strain_history", "error_histograms",
     "show_heightmap_panels", "show_hillshade", "plot_profile", "show_bands", "plot_band_profiles",
+    "plot_drift",
 ]
 
 
@@ -667,6 +668,59 @@ def plot_band_profiles(profiles, ncols=3, size=3.2):
         ax.set_xlabel("across the trace (µm)")
     for ax in axs.ravel()[len(profiles):]:
         ax.set_visible(False)
+
+
+def plot_drift(drift, truth=None, axes=None):
+    """Stage drift of every frame relative to the last one: shift, rotation, magnification.
+
+    Parameters
+    ----------
+    drift : semlab.registration.Registration or dict
+        A registration, or the columns of ``drift.csv`` (:func:`semlab.registration.read_drift_csv`):
+        ``frame, dx_px, dy_px, rotation_deg, scale, method``.
+    truth : dict, optional
+        The same columns from ``truth/drift.csv`` of a synthetic experiment, drawn as
+        open circles.
+    axes : sequence of 3 Axes, optional
+
+    Returns
+    -------
+    fig : matplotlib Figure with three panels: shift of the image centre (px), rotation about
+    it (degrees, positive from +x toward +y) and magnification change (%), against the frame
+    index (0 = earliest). Frames registered through their neighbour (no direct feature
+    match) are drawn with open squares.
+    """
+    plt = _plt()
+    cols = drift.table() if hasattr(drift, "table") else None
+    if cols is not None:
+        drift = {k: np.array([r[k] for r in cols]) for k in cols[0]}
+    f = np.asarray(drift["frame"], float)
+    if axes is None:
+        fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.0))
+    fig = axes[0].figure
+    chained = np.array([str(m).startswith("chained") or str(m) == "none" for m in drift["method"]])
+    panels = (((drift["dx_px"], "dx"), (drift["dy_px"], "dy")), ((drift["rotation_deg"], "rotation"),),
+              (((np.asarray(drift["scale"], float) - 1) * 100, "magnification"),))
+    labels = ("shift of the image centre (px)", "rotation (°)", "magnification change (%)")
+    keys = (("dx_px", "dy_px"), ("rotation_deg",), ("scale",))
+    for ax, series, ylabel, ks in zip(axes, panels, labels, keys):
+        for (v, name), c in zip(series, ("tab:blue", "tab:orange")):
+            v = np.asarray(v, float)
+            ax.plot(f, v, "-o", color=c, ms=4, label=name)
+            if chained.any():
+                ax.plot(f[chained], v[chained], "s", mfc="none", color="k", ms=7)
+        if truth is not None:
+            for k, c in zip(ks, ("tab:blue", "tab:orange")):
+                t = np.asarray(truth[k], float)
+                t = (t - 1) * 100 if k == "scale" else t
+                ax.plot(np.asarray(truth["frame"], float), t, "o", mfc="none", color=c, ms=9,
+                        label=f"{k.split('_')[0]} truth" if k != "scale" else "truth")
+        ax.set_xlabel("frame (0 = earliest)", fontsize=REPORT_FONTSIZE)
+        ax.set_ylabel(ylabel, fontsize=REPORT_FONTSIZE)
+        ax.tick_params(labelsize=REPORT_FONTSIZE)
+        if len(series) > 1 or truth is not None:
+            ax.legend(fontsize=REPORT_FONTSIZE)
+    fig.tight_layout()
     return fig
 
 

@@ -26,15 +26,16 @@ References
 
 from __future__ import annotations
 
-import csv
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .errors import SemlabError, TrackingError
+from .displacement import (TRACKS_CSV_COLUMNS, TRACKS_CSV_EXTRA_COLUMNS,  # noqa: F401 (re-exported)
+                           displacement_history, displacements, tracks_to_records,
+                           write_tracks_csv)
+from .errors import TrackingError
 
 __all__ = [
     "Tracks",
@@ -52,10 +53,6 @@ __all__ = [
     "TRACKS_CSV_EXTRA_COLUMNS",
 ]
 
-TRACKS_CSV_COLUMNS = ("track_id", "seed", "frame", "x_px", "y_px", "fb_error_px", "valid")
-#: Diagnostic columns written after the contract columns: the step's ZNCC, its predicted
-#: 1σ matching error (pixels) and how many frames the track has been suspended.
-TRACKS_CSV_EXTRA_COLUMNS = ("zncc", "sigma_px", "gap_frames")
 
 #: A frame whose robust intensity range (0.5-99.5 percentile) is below this fraction of its
 #: absolute level (or exactly zero) is treated as blank.
@@ -756,122 +753,3 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         xy = reg.to_frames(xy)            # back into each frame's own pixels
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
                   reference_frame=ref, method=method, params=params, registration=reg)
-
-
-# ----------------------------------------------------------------------------- records / csv
-
-def tracks_to_records(tracks, seed_kind=None):
-    """Rows of ``tracks.csv``: one per (track, frame), frames chronological.
-
-    Parameters
-    ----------
-    tracks : Tracks
-    seed_kind : (N,) sequence of str, optional
-        Overrides ``tracks.seed_kind``.
-
-    Returns
-    -------
-    list of dict with keys ``track_id, seed, frame, x_px, y_px, fb_error_px, valid`` and
-    then ``zncc, sigma_px, gap_frames`` (NaN positions where no estimate exists; ``valid``
-    is bool).
-    """
-    kinds = tracks.seed_kind if seed_kind is None else np.asarray(list(seed_kind), dtype=object)
-    if len(kinds) != tracks.n_tracks:
-        raise TrackingError(f"seed_kind has {len(kinds)} labels for {tracks.n_tracks} tracks")
-    rows = []
-    for i in range(tracks.n_tracks):
-        for f in range(tracks.n_frames):
-            rows.append({"track_id": i, "seed": str(kinds[i]), "frame": f,
-                         "x_px": float(tracks.xy[f, i, 0]), "y_px": float(tracks.xy[f, i, 1]),
-                         "fb_error_px": float(tracks.fb_error_px[f, i]),
-                         "valid": bool(tracks.valid[f, i]),
-                         "zncc": float(tracks.zncc[f, i]),
-                         "sigma_px": float(tracks.sigma_px[f, i]),
-                         "gap_frames": int(tracks.gap_frames[f, i])})
-    return rows
-
-
-def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
-    """Write ``tracks.csv`` (columns :data:`TRACKS_CSV_COLUMNS`, then the diagnostic
-    :data:`TRACKS_CSV_EXTRA_COLUMNS`).
-
-    Raises
-    ------
-    SemlabError
-        ``path`` exists and ``overwrite`` is False.
-    """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise SemlabError(f"{path} already exists: pass overwrite=True to replace it or choose "
-                          "another --out folder")
-    rows = tracks_to_records(tracks, seed_kind)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(TRACKS_CSV_COLUMNS + TRACKS_CSV_EXTRA_COLUMNS))
-        w.writeheader()
-        for r in rows:
-            r = dict(r)
-            for k in ("x_px", "y_px", "fb_error_px", "zncc", "sigma_px"):
-                r[k] = "" if not np.isfinite(r[k]) else f"{r[k]:.6f}"
-            r["valid"] = int(r["valid"])
-            w.writerow(r)
-    return path
-
-
-# ----------------------------------------------------------------------------- displacements
-
-def _check_pixel_size(pixel_size_um):
-    if pixel_size_um is None or not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
-        raise SemlabError(f"pixel_size_um must be a positive number, got {pixel_size_um!r}; it is "
-                          "in the SEM file metadata or experiment.toml")
-    return float(pixel_size_um)
-
-
-def _frame_index(f, F, what):
-    fi = int(f)
-    if not -F <= fi < F:
-        raise TrackingError(f"{what}={f} is out of range for {F} frames")
-    return fi % F
-
-
-def displacements(tracks, pixel_size_um, frame_from=0, frame_to=-1):
-    """In-plane displacement of each material point from ``frame_from`` to ``frame_to``.
-
-    Parameters
-    ----------
-    tracks : Tracks
-    pixel_size_um : float
-        µm per pixel.
-    frame_from, frame_to : int
-        Chronological frame indices (negative counts from the end).
-
-    Returns
-    -------
-    dict of (N,) arrays ``dx_um, dy_um, d_um`` (x right, y down), NaN where the track is
-    invalid in either frame, plus ``valid`` (N,) bool.
-    """
-    s = _check_pixel_size(pixel_size_um)
-    F = tracks.n_frames
-    a = _frame_index(frame_from, F, "frame_from")
-    b = _frame_index(frame_to, F, "frame_to")
-    ok = tracks.valid[a] & tracks.valid[b]
-    d = (tracks.xy[b] - tracks.xy[a]) * s
-    d[~ok] = np.nan
-    return {"dx_um": d[:, 0], "dy_um": d[:, 1], "d_um": np.hypot(d[:, 0], d[:, 1]), "valid": ok}
-
-
-def displacement_history(tracks, pixel_size_um, frame_from=0):
-    """Displacement of each material point in every frame relative to ``frame_from``.
-
-    Returns
-    -------
-    dict of (F, N) arrays ``dx_um, dy_um, d_um`` (NaN where the track is invalid in that
-    frame or in ``frame_from``) and ``valid`` (F, N) bool.
-    """
-    s = _check_pixel_size(pixel_size_um)
-    a = _frame_index(frame_from, tracks.n_frames, "frame_from")
-    ok = tracks.valid & tracks.valid[a][None, :]
-    d = (tracks.xy - tracks.xy[a][None]) * s
-    d[~ok] = np.nan
-    return {"dx_um": d[..., 0], "dy_um": d[..., 1], "d_um": np.hypot(d[..., 0], d[..., 1]),
-            "valid": ok}

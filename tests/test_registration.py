@@ -195,3 +195,27 @@ def test_to_reference_removes_the_rigid_part_only():
     assert np.allclose(back[0], p[0])                  # centre: shift removed exactly
     assert np.allclose(np.linalg.norm(back[1] - back[0]), 40 * 1.01)   # scale kept
     assert np.allclose(reg.to_reference(T(p), np.array([0, 0]), part="full"), p)
+
+
+def test_plot_drift_draws_the_table_and_the_truth(drifted_experiment, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from semlab.plots import plot_drift
+
+    frames, truth, _ = drifted_experiment
+    reg = register_frames(frames, model="similarity")
+    table = read_drift_csv(write_drift_csv(tmp_path / "drift.csv", reg))
+    fig = plot_drift(table, truth=truth)
+    ax_shift, ax_rot, ax_scale = fig.axes
+    assert "px" in ax_shift.get_ylabel() and "°" in ax_rot.get_ylabel() and "%" in ax_scale.get_ylabel()
+    lines = {ln.get_label(): ln for ln in ax_shift.lines}
+    assert np.allclose(lines["dx"].get_ydata(), table["dx_px"])
+    assert np.allclose(lines["dx truth"].get_ydata(), truth["dx_px"])
+    assert np.allclose(ax_scale.lines[0].get_ydata(), (table["scale"] - 1) * 100)
+    # the same figure from the Registration object itself
+    fig2 = plot_drift(reg)
+    assert np.allclose(fig2.axes[1].lines[0].get_ydata(), table["rotation_deg"])
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+    plt.close(fig2)

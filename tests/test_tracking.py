@@ -312,3 +312,56 @@ def test_register_rejects_unknown_model(series):
     frames, seeds, _ = series
     with pytest.raises(GeometryError, match="model"):
         track_reverse(frames, seeds, progress=False, register="projective")
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+@pytest.mark.filterwarnings("ignore:no frame before the last:UserWarning")
+def test_run_tracking_writes_drift_and_removes_the_rigid_motion(tmp_path):
+    """A series drifted by up to 25 px and 1° against the same series undrifted (same scene,
+    same noise, same last frame): tracks.csv stays in each frame's own pixels, drift.csv
+    holds the recovered drift, and displacements.csv with the rigid motion removed agrees
+    with the undrifted run while its raw columns carry the drift."""
+    from semlab.displacement import DISPLACEMENTS_CSV_COLUMNS
+    from semlab.experiment import load
+    from semlab.pipeline import run_tracking, write_tracking_results
+    from semlab.registration import read_drift_csv
+    from semlab.synth import _stage_matrix, make_experiment
+
+    kw = dict(seed=2, size=(192, 256), tilts_deg=(), n_frames=3, progress=False)
+    runs = {}
+    for name, dkw in (("still", {}), ("drift", dict(drift_shift_px=25, drift_rotation_deg=1.0))):
+        exp = load(make_experiment(tmp_path / name, **kw, **dkw))
+        res = run_tracking(exp, progress=False, corner_kw=dict(quality=0.05))
+        runs[name] = (res, write_tracking_results(res, tmp_path / f"out_{name}"))
+    (still, _), (drift, paths) = runs["still"], runs["drift"]
+    assert np.array_equal(still.tracks.xy[-1], drift.tracks.xy[-1])        # same seeds
+    names = [p.name for p in paths]
+    assert "drift.csv" in names
+    truth = read_drift_csv(tmp_path / "drift" / "truth" / "drift.csv")
+    table = read_drift_csv(tmp_path / "out_drift" / "drift.csv")
+    assert np.abs(truth["dx_px"][:-1]).max() > 5 and np.allclose(table["dx_px"], [
+        r["dx_px"] for r in drift.tracks.registration.table()])
+    # the registration holds the drift D and the material's own mean motion M (up to 12 px
+    # here, non-uniform: slip bands), which the undrifted run measures alone: drifted = D @ M
+    # up to how the features sample M
+    for k in range(2):
+        D = Transform2D(_stage_matrix({c: truth[c][k] for c in truth if c != "frame"}, (192, 256)))
+        M = still.tracks.registration.transforms[k]
+        g = np.stack(np.meshgrid(np.linspace(30, 225, 5), np.linspace(30, 161, 5)), -1).reshape(-1, 2)
+        err = np.linalg.norm(drift.tracks.registration.transforms[k](g) - (D @ M)(g), axis=1)
+        assert err.max() < 0.5, (k, err.max())
+    with open(tmp_path / "out_drift" / "displacements.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == DISPLACEMENTS_CSV_COLUMNS
+    both = np.isfinite(still.dx_um) & np.isfinite(drift.dx_um) & (still.frame_from == drift.frame_from)
+    assert both.sum() >= 20
+    s = 0.03
+    # within the registrations' disagreement (< 0.5 px above), against > 3 px raw
+    assert np.median(np.abs(drift.dx_um[both] - still.dx_um[both])) / s < 0.25
+    assert np.median(np.abs(drift.dy_um[both] - still.dy_um[both])) / s < 0.25
+    assert np.median(np.abs(drift.dx_raw_um[both] - still.dx_raw_um[both])) / s > 3   # the drift
+    # tracks.csv: the drifted run's positions are in the drifted frames' own pixels
+    f = int(np.min(drift.frame_from[both]))
+    T = Transform2D(_stage_matrix({c: truth[c][f] for c in truth if c != "frame"}, (192, 256)))
+    sel = both & drift.tracks.valid[f]
+    assert np.median(np.linalg.norm(drift.tracks.xy[f, sel] - T(still.tracks.xy[f, sel]), axis=1)) < 0.1

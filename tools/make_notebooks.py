@@ -491,6 +491,24 @@ if tr is not None and out_dir:
     for f in pipeline.write_tracking_results(tr, out_dir):
         print("wrote", f)
 '''),
+    md("""
+## Stage drift between the frames
+
+Before tracking, every frame was registered to the last one (SIFT features, RANSAC, refined by
+ECC; `drift.csv`): the shift of the image centre, the rotation about it and the
+magnification change, relative to the last frame. Tracks are followed in the registered
+geometry; `tracks.csv` keeps each frame's own pixels and `displacements.csv` has this rigid
+motion removed (raw columns kept). Open squares: frames registered through their neighbour.
+"""),
+    code('''
+if tr is not None and t.registration is not None:
+    from semlab.registration import read_drift_csv
+    truth_drift = exp.root / "truth" / "drift.csv"
+    plots.plot_drift(t.registration, truth=read_drift_csv(truth_drift) if truth_drift.is_file() else None)
+    for r in t.registration.table():
+        print(f"frame {r['frame']}: dx {r['dx_px']:+.2f} px, dy {r['dy_px']:+.2f} px, "
+              f"rotation {r['rotation_deg']:+.3f}°, scale {r['scale']:.5f} ({r['method']})")
+'''),
     md("## Tracks over the frames, latest first (at most 4 frames)"),
     code('''
 if tr is not None:
