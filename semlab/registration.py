@@ -50,7 +50,7 @@ __all__ = [
     "register_frames",
     "register_points",
     "warp_to_reference",
-    "registered_frames",
+    "as_registration",
     "write_drift_csv",
     "read_drift_csv",
 ]
@@ -328,6 +328,20 @@ class Registration:
                          **{f"m{i}{j}": float(m[i, j]) for i in range(2) for j in range(3)}})
         return rows
 
+    def between(self, src, dst):
+        """Transform of frame ``src`` pixels into frame ``dst`` pixels."""
+        return self.transforms[dst] @ self.transforms[src].inverse()
+
+    def carry_warps(self, warps, src, dst):
+        """Subset warps ``(u, ux, uy, v, vx, vy)`` (N, 6) from the reference into frame
+        ``src``, carried into frame ``dst``: their gradient part ``I + ∇u`` is multiplied by
+        the linear part of :meth:`between` (the translation is left as it is)."""
+        w = np.array(warps, float)
+        L = self.between(src, dst).matrix[:2, :2]
+        A = np.eye(2) + w[:, [1, 2, 4, 5]].reshape(-1, 2, 2)
+        w[:, [1, 2, 4, 5]] = (L @ A - np.eye(2)).reshape(-1, 4)
+        return w
+
     def to_frames(self, xy):
         """(F, N, 2) reference-geometry positions → each frame's own pixels."""
         return np.stack([T(p) for T, p in zip(self.transforms, np.asarray(xy, float))])
@@ -497,44 +511,27 @@ def warp_to_reference(img, transform, shape=None, margin_px=0, order=3):
     return out, foot.reshape(h, w)
 
 
-def registered_frames(frames, register, margin_px=0):
-    """Frames resampled into the geometry of the last frame (for tracking).
+def as_registration(register, frames):
+    """The registration tracking uses: computed, or a precomputed one checked.
 
     Parameters
     ----------
+    register : {"similarity", "affine", "translation", True} or Registration
+        Model to estimate with :func:`register_frames` (reference = last frame; True:
+        ``"similarity"``), or a precomputed registration of these frames.
     frames : sequence of F (H, W) arrays
-    register : {"translation", "similarity", "affine"} or Registration
-        Model to estimate with :func:`register_frames` (reference = last frame), or a
-        precomputed registration of these frames.
-    margin_px : float
-        Footprint margin (see :func:`warp_to_reference`).
 
     Returns
     -------
-    registration : Registration
-    warped : list of F (H, W) float arrays (frames whose transform is the identity are
-        returned unchanged)
-    footprints : list of F (H, W) bool arrays or None (identity)
+    Registration
     """
-    frames = [_as_2d(f, f"frame {i}") for i, f in enumerate(frames)]
     if isinstance(register, Registration):
-        reg = register
-        if len(reg.transforms) != len(frames) or reg.reference != len(frames) - 1:
-            raise GeometryError(f"the registration has {len(reg.transforms)} frames with reference "
-                                f"{reg.reference}; tracking needs one for these {len(frames)} frames "
-                                "with the last frame as reference")
-    else:
-        reg = register_frames(frames, model=register if register is not True else "similarity")
-    warped, foot = [], []
-    for f, T in zip(frames, reg.transforms):
-        if T.is_identity():
-            warped.append(f)
-            foot.append(None)
-        else:
-            w, m = warp_to_reference(f, T, margin_px=margin_px)
-            warped.append(w)
-            foot.append(m)
-    return reg, warped, foot
+        if len(register.transforms) != len(frames) or register.reference != len(frames) - 1:
+            raise GeometryError(f"the registration has {len(register.transforms)} frames with "
+                                f"reference {register.reference}; tracking needs one for these "
+                                f"{len(frames)} frames with the last frame as reference")
+        return register
+    return register_frames(frames, model="similarity" if register is True else register)
 
 
 def register_points(src_img, dst_img, pts, model="affine", ratio=0.75, ransac_threshold_px=2.0,

@@ -97,7 +97,7 @@ class Tracks:
         ``"lk"`` or ``"subset"``.
     registration : semlab.registration.Registration or None
         The frame-to-reference transforms when tracking ran in the registered geometry
-        (``register=``); ``fb_error_px`` and ``sigma_px`` are then in reference pixels.
+        (``register=``), else None.
     """
 
     xy: np.ndarray
@@ -419,10 +419,12 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     """Track points seeded in the last frame backwards in time to frame 0.
 
     With ``register``, every frame is first registered to the reference by one global
-    transform (:func:`semlab.registration.register_frames`: features, RANSAC, ECC) and
-    resampled into the reference geometry, so stage drift between frames does not enter
-    the steps below; positions are mapped back and stored in each frame's own pixels, and a
-    step is valid only if its window lies inside the frame.
+    transform (:func:`semlab.registration.register_frames`: features, RANSAC, ECC) and the
+    steps below run in the registered geometry: every start position, subset warp and
+    jump/neighbour test carries the frame-to-frame transform, so stage drift between
+    frames does not enter them. The frames are not resampled (resampling smooths the noise
+    and made the predicted ``sigma_px`` over-confident): positions, ``fb_error_px`` and
+    ``sigma_px`` are in each frame's own pixels.
 
     Algorithm (for each frame ``k = F-2, F-3, ..., 0``):
 
@@ -581,10 +583,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     F = len(frames)
     ref = F - 1
     half = win_size // 2
-    reg, footprint = None, [None] * F
+    reg = None
     if register is not None:
-        from .registration import registered_frames
-        reg, frames, footprint = registered_frames(frames, register, margin_px=half + 1)
+        from .registration import as_registration
+        reg = as_registration(register, frames)
     norm, blank = [], []
     for fr in frames:
         f01, b = normalize_frame(_as_2d(fr, "frame"))
@@ -622,6 +624,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         ref64 = norm[ref].astype(np.float64)
         ref_coef = prefilter_image(ref64)
         grad_last = np.zeros((n, 6))      # affine warp of each track's last valid step
+    init = None
+
+    def moved(p, src, dst):               # frame src pixels -> frame dst pixels (registration)
+        return p if reg is None else reg.between(src, dst)(p)
 
     order = range(F - 2, -1, -1)
     if progress:
@@ -636,16 +642,22 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         chain = np.full((n, 2), np.nan)
         chain_ok = np.zeros(n, bool)
         chain_fb = np.full(n, np.nan)
+        pred = last_pos.copy()            # last valid positions carried into frame k
+        if icgn_refine is not None:
+            init = grad_last.copy()       # and their subset warps
         for src in np.unique(last_frame):
             sel = np.flatnonzero(last_frame == src)
             p_src = last_pos[sel]
-            p_k, ok = _lk(u8[src], u8[k], p_src, None, lk_kw)
+            pred[sel] = moved(p_src, src, k)
+            p_k, ok = _lk(u8[src], u8[k], p_src, None if reg is None else pred[sel], lk_kw)
             back, okb = _lk(u8[k], u8[src], p_k, p_src, lk_kw)
             e = np.linalg.norm(back - p_src, axis=1)
             chain[sel] = p_k
             chain_ok[sel] = ok & okb
             chain_fb[sel] = e
-        guess = np.where(np.isfinite(chain), chain, last_pos)
+            if reg is not None and icgn_refine is not None:
+                init[sel] = reg.carry_warps(grad_last[sel], src, k)
+        guess = np.where(np.isfinite(chain), chain, pred)
 
         if not direct_correction:
             pos, ok, e = chain, chain_ok, chain_fb
@@ -658,7 +670,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             cur = norm[k].astype(np.float64)
             cur_coef = prefilter_image(cur)
             res = icgn_refine(ref64, cur, seeds, guess, half_window=hw, warp="affine",
-                              init_warp=grad_last, ref_prefiltered=ref_coef,
+                              init_warp=init, ref_prefiltered=ref_coef,
                               cur_prefiltered=cur_coef)
             pos = np.asarray(res.pts, float).copy()
             ok = np.asarray(res.converged, bool) & _inside(np.nan_to_num(pos, nan=-1.0), shape0)
@@ -692,11 +704,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         zn[k] = z
         good = ok & np.isfinite(e) & (e <= fb_threshold_px)
         with np.errstate(invalid="ignore"):
-            good &= np.linalg.norm(pos - last_pos, axis=1) <= max_jump
-        if footprint[k] is not None:        # the window must lie inside frame k itself
-            ri = np.round(np.nan_to_num(pos, nan=-1.0)).astype(int)
-            good &= _inside(ri.astype(float), shape0) & footprint[k][
-                np.clip(ri[:, 1], 0, shape0[0] - 1), np.clip(ri[:, 0], 0, shape0[1] - 1)]
+            good &= np.linalg.norm(pos - pred, axis=1) <= max_jump
         if min_zncc is not None:
             good &= np.isfinite(z) & (z >= min_zncc)
         if max_sigma_px is not None:
@@ -709,15 +717,16 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             chk = np.flatnonzero(good)
             if len(chk):
                 rc = icgn_refine(ref64, norm[k].astype(np.float64), seeds[chk], pos[chk],
-                                 half_window=hw, warp="affine", init_warp=grad_last[chk],
+                                 half_window=hw, warp="affine", init_warp=init[chk],
                                  ref_prefiltered=ref_coef)
                 d = np.linalg.norm(np.asarray(rc.pts, float) - pos[chk], axis=1)
                 agree = np.asarray(rc.converged, bool) & (d <= float(lk_check_px))
                 good[chk[~agree]] = False
                 grad_last[chk[agree]] = np.asarray(rc.warp, float)[agree]
         if outlier_threshold is not None:
-            good &= ~median_outliers(seeds, pos - seeds, good, threshold=outlier_threshold,
-                                     n_neighbours=int(n_neighbours))
+            # on the displacement in the reference geometry (the drift is no outlier)
+            good &= ~median_outliers(seeds, moved(pos, k, ref) - seeds, good,
+                                     threshold=outlier_threshold, n_neighbours=int(n_neighbours))
         xy[k] = pos
         fb[k] = e
         gap[k] = last_frame - k - 1
@@ -749,7 +758,5 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
                   n_neighbours=n_neighbours, max_jump_px=max_jump, max_gap_frames=max_gap_frames,
                   register=None if reg is None else reg.model)
-    if reg is not None:
-        xy = reg.to_frames(xy)            # back into each frame's own pixels
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
                   reference_frame=ref, method=method, params=params, registration=reg)

@@ -219,3 +219,24 @@ def test_plot_drift_draws_the_table_and_the_truth(drifted_experiment, tmp_path):
     import matplotlib.pyplot as plt
     plt.close(fig)
     plt.close(fig2)
+
+
+def test_between_and_carry_warps_compose_the_frame_transforms():
+    from semlab.registration import Registration
+
+    c = (49.5, 39.5)
+    T0 = Transform2D.from_params(10.0, 5.0, 1.0, 1.01, c)
+    T1 = Transform2D.from_params(-4.0, 2.0, -0.5, 0.998, c)
+    reg = Registration(transforms=[T0, T1, Transform2D.identity()], residual_px=np.zeros(3),
+                       n_inliers=np.zeros(3, int), ecc=np.ones(3), method=np.array(["a"] * 3),
+                       shape=(80, 100), reference=2)
+    p = np.random.default_rng(7).uniform(0, 100, (5, 2))
+    assert np.allclose(reg.between(1, 0)(T1(p)), T0(p))
+    # a subset warp from the reference into frame 1 (its gradient part) carried into frame 0
+    w = np.zeros((1, 6))
+    w[0, [1, 2, 4, 5]] = [0.01, -0.02, 0.005, 0.003]
+    A1 = np.eye(2) + w[0, [1, 2, 4, 5]].reshape(2, 2)
+    got = reg.carry_warps(w, 1, 0)
+    L = T0.matrix[:2, :2] @ np.linalg.inv(T1.matrix[:2, :2])
+    assert np.allclose(np.eye(2) + got[0, [1, 2, 4, 5]].reshape(2, 2), L @ A1)
+    assert got[0, 0] == w[0, 0] and got[0, 3] == w[0, 3]
