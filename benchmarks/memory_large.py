@@ -11,7 +11,10 @@ Cases:
   cluster: threads, all cores) of a grid of subsets (``--spacing``) from view 0 into view 1;
 - ``icgn_untiled``: the same points with one :func:`semlab.subset.icgn_refine` call;
 - ``track_tiled`` / ``track_untiled``: :func:`semlab.parallel.tiled_track_reverse` /
-  :func:`semlab.tracking.track_reverse` (LK) of Shi–Tomasi seeds over ``--frames`` frames.
+  :func:`semlab.tracking.track_reverse` (LK) of Shi–Tomasi seeds over ``--frames`` frames;
+- ``dense_tiled``: :func:`semlab.parallel.tiled_dense_parallax` (a subset at every pixel,
+  256 px tiles) over a central ``--dense-roi`` square of the pair (the whole 12.6 Mpx map
+  takes too long for a benchmark; a tile's memory does not depend on the image size).
 
 The images: band-limited random texture (Gaussian-filtered white noise, σ 1.5 px), view 1
 rendered with a smooth parallax field of ±4 px, the frames with a displacement growing to
@@ -38,7 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CASES = ("icgn_tiled", "icgn_untiled", "track_tiled", "track_untiled")
+CASES = ("icgn_tiled", "icgn_untiled", "track_tiled", "track_untiled", "dense_tiled")
 
 
 def texture(shape, seed):
@@ -102,7 +105,7 @@ class PeakSampler:
         self.peak = max(self.peak, self._rss())
 
 
-def run_case(case, size, spacing, n_frames):
+def run_case(case, size, spacing, n_frames, dense_roi=512):
     """Run one case in this process; returns a dict of numbers."""
     from semlab import parallel
     from semlab.subset import icgn_refine
@@ -113,7 +116,17 @@ def run_case(case, size, spacing, n_frames):
     info = {"case": case, "size": f"{h}x{w}"}
     with PeakSampler() as peak:
         t0 = time.perf_counter()
-        if case.startswith("icgn"):
+        if case == "dense_tiled":
+            par = parallax((h, w), 4.0)
+            view1 = warped(base, par, np.float32(0), 2.0, 1)
+            c = dense_roi
+            x0, y0 = (w - c) // 2, (h - c) // 2
+            t0 = time.perf_counter()
+            d = parallel.tiled_dense_parallax(base, view1, roi=(x0, y0, x0 + c, y0 + c),
+                                              tile_px=256, progress=True)
+            info.update(points=int(c * c), converged=int(d.valid.sum()),
+                        size=f"{h}x{w}, {c}x{c} ROI")
+        elif case.startswith("icgn"):
             par = parallax((h, w), 4.0)
             view1 = warped(base, par, np.float32(0), 2.0, 1)
             xs = np.arange(16, w - 16, spacing, dtype=float)
@@ -130,11 +143,19 @@ def run_case(case, size, spacing, n_frames):
                 r = icgn_refine(base, view1, pts, guess, progress=True)
             info.update(points=len(pts), converged=int(r.converged.sum()))
         else:
+            # frames rendered one at a time into .npy files and memory-mapped, as a long
+            # series would be read (tifffile.memmap): the driver does not hold them
+            import tempfile
+
+            tmp = tempfile.mkdtemp(prefix="semlab_memory_large_")
             frames = []
             for k in range(n_frames):
                 a = (n_frames - 1 - k) / max(n_frames - 1, 1)
-                frames.append(warped(base, parallax((h, w), 3.0 * a),
-                                     parallax((w, h), 2.0 * a).T.copy(), 2.0, 10 + k))
+                f = Path(tmp) / f"frame_{k:03d}.npy"
+                np.save(f, warped(base, parallax((h, w), 3.0 * a),
+                                  parallax((w, h), 2.0 * a).T.copy(), 2.0, 10 + k))
+                frames.append(np.load(f, mmap_mode="r"))
+            del base
             seeds = shi_tomasi_seeds(frames[-1], quality=0.05, max_corners=20000)
             t0 = time.perf_counter()
             if case == "track_tiled":
@@ -144,6 +165,10 @@ def run_case(case, size, spacing, n_frames):
                 t = track_reverse(frames, seeds, progress=True)
             info.update(points=len(seeds), frames=n_frames,
                         valid_steps=float(t.valid[:-1].mean()))
+            del frames
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
         info["seconds"] = round(time.perf_counter() - t0, 1)
     info["peak_rss_gb"] = round(peak.peak / 1e9, 3)
     info["ru_maxrss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9, 3)
@@ -156,16 +181,19 @@ def main(argv=None):
     p.add_argument("--size", default="3072x4096", help="HxW (default 3072x4096)")
     p.add_argument("--spacing", type=int, default=16, help="grid spacing of the subsets, px")
     p.add_argument("--frames", type=int, default=3, help="frames of the tracking cases")
+    p.add_argument("--dense-roi", type=int, default=512, help="side of the dense_tiled ROI, px")
     p.add_argument("--one", default="", help=argparse.SUPPRESS)   # run one case here
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.lower().split("x"))
     if args.one:
-        print("RESULT " + json.dumps(run_case(args.one, (h, w), args.spacing, args.frames)))
+        print("RESULT " + json.dumps(run_case(args.one, (h, w), args.spacing, args.frames,
+                                              args.dense_roi)))
         return 0
     rows = []
     for case in args.cases.split(","):
         cmd = [sys.executable, __file__, "--one", case, "--size", args.size, "--spacing",
-               str(args.spacing), "--frames", str(args.frames)]
+               str(args.spacing), "--frames", str(args.frames), "--dense-roi",
+               str(args.dense_roi)]
         out = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ))
         res = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
         if out.returncode or not res:
