@@ -218,9 +218,12 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
             i, args = next(jobs)
         except StopIteration:
             return None
-        fut = client.submit(fn, *args, key=f"semlab-{desc.replace(' ', '-')}-{tag}-{i}",
+        # the crops go to the workers as data (scatter), not inside the task: a task
+        # carrying them would be a "large graph" for the scheduler (and a warning > 10 MB)
+        data = client.scatter([args], hash=False)[0]
+        fut = client.submit(_call, fn, data, key=f"semlab-{desc.replace(' ', '-')}-{tag}-{i}",
                             pure=False)
-        inflight[fut.key] = (i, fut)
+        inflight[fut.key] = (i, fut, data)
         return fut
 
     first = [f for f in (submit() for _ in range(limit)) if f is not None]
@@ -228,9 +231,10 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
     try:
         pending = as_completed(first)
         for fut in pending:
-            i, _ = inflight.pop(fut.key)
+            i, _, data = inflight.pop(fut.key)
             result = fut.result()
             fut.release()
+            data.release()
             bar.update()
             nxt = submit()
             if nxt is not None:
@@ -238,8 +242,13 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
             yield i, result
     finally:
         bar.close()
-        for _, fut in inflight.values():
+        for _, fut, data in inflight.values():
             fut.cancel()
+            data.release()
+
+
+def _call(fn, args):
+    return fn(*args)
 
 
 def _tiles_needed(shape, tile_px, scheduler):
@@ -531,7 +540,8 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         Largest distance between a point's position in the last frame and in any frame,
         pixels (motion plus drift). Tracks that move further may differ from the untiled run.
     halo_px : float, optional
-        Width of the helper-seed band, pixels (default: the reach, at least 64 px).
+        Width of the helper-seed band, pixels (default 64: several rings of neighbours at
+        the usual seed spacing of 7-20 px).
     scheduler : str, distributed.Client or None
         Where the tiles run (see :func:`dask_client`).
     progress : bool
@@ -589,7 +599,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
             return track_reverse(frames, seeds, progress=progress, seed_kind=kind, **kw)
 
     reach = _tracking_reach_px(kw, max_motion_px)
-    halo = _round_up(max(reach, 64) if halo_px is None else halo_px, _ALIGN_PX)
+    halo = _round_up(64 if halo_px is None else halo_px, _ALIGN_PX)
     H, W = shape
     plans = []
     for t in plan_tiles(shape, tile_px):

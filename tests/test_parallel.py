@@ -79,8 +79,15 @@ def test_tiled_icgn_equals_untiled(smooth):
     init[:, 1] = 0.01
     a = icgn_refine(ref, cur, pts, guess, half_window=10, smooth_sigma_px=smooth,
                     init_warp=init)
-    b = parallel.tiled_icgn(ref, cur, pts, guess, half_window=10, smooth_sigma_px=smooth,
-                            init_warp=init, tile_px=128)       # 3 × 4 tiles
+    import dask
+    import distributed  # noqa: F401  (its config keys exist before config.set saves them)
+
+    # the tiles' crops are scattered to the workers, never sent inside the task graph:
+    # distributed warns about graphs above this threshold (10 MB by default), and under
+    # -W error that warning would fail here
+    with dask.config.set({"distributed.admin.large-graph-warning-threshold": "64kB"}):
+        b = parallel.tiled_icgn(ref, cur, pts, guess, half_window=10, smooth_sigma_px=smooth,
+                                init_warp=init, tile_px=128)       # 3 × 4 tiles
     assert a.converged.sum() > 0.9 * len(pts)
     assert {"subset leaves the image", "NaN input point"} <= set(a.reason)
     d = _assert_same_subsets(a, b, 2e-8)
