@@ -63,10 +63,12 @@ def main():
     send(fig, a1, "button_release_event", tuple(picker.pts[0, 1]))
     start = picker.pts[0, 1].copy()
     send(fig, a1, "button_press_event", tuple(start))
-    send(fig, a1, "motion_notify_event", tuple(start + 1))
-    k = iter(range(2, 100))
+    # the drag starts once the mouse has moved 3 screen px (about 15 image px zoomed out)
+    send(fig, a1, "motion_notify_event", tuple(start + 30))
+    k = iter(range(31, 130))
     rows.append(("drag: one mouse move", timed(lambda: send(fig, a1, "motion_notify_event",
                                                             tuple(start + next(k))))))
+    assert view._drag is not None and view._drag["started"], "the timed moves were no drag"
     send(fig, a1, "button_release_event", tuple(start + 5))
     a0.set_xlim(600.5, 800.5)
     a0.set_ylim(700.5, 500.5)
