@@ -385,7 +385,12 @@ class LinePickerFigure:
             return None
 
     def _on_press(self, event):
-        if (event.inaxes is not self.ax or event.xdata is None or _toolbar_busy(self.fig)):
+        if event.inaxes is not self.ax or event.xdata is None:
+            return
+        if _toolbar_busy(self.fig):
+            self.message = ("the toolbar's zoom or pan is on, so clicks do not pick: click "
+                            "its button again to pick segments")
+            self.redraw()
             return
         xy = (event.xdata, event.ydata)
         if event.button == 1:

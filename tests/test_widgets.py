@@ -471,6 +471,17 @@ def test_line_picker_events_to_lines_dict_and_save(tmp_path):
     np.testing.assert_allclose(again.segments("y"), lp.segments("y"))
 
 
+def test_line_picker_says_why_clicks_do_not_pick_in_zoom_mode():
+    view = LinePickerFigure(LinePicker(_images(1)[0]))
+    toolbar = NavigationToolbar2(view.fig.canvas)
+    toolbar.pan()
+    click(view.fig, view.ax, (10.0, 10.0))
+    assert view.picker.pending is None and "zoom or pan is on" in view.message
+    toolbar.pan()
+    click(view.fig, view.ax, (10.0, 10.0))
+    assert view.picker.pending is not None
+
+
 def test_line_picker_errors(tmp_path):
     lp = LinePicker(_images(1)[0])
     with pytest.raises(GeometryError, match="family"):
