@@ -771,5 +771,6 @@ def picker_widget(images, save_path, pts=None, refine="matching", F=None, titles
     box.picker, box.figure, box.buttons = picker, view, buttons
     box.status, box.unsaved, box.note, box.table, box.sigma = status, unsaved, note, table, sigma
     box.focus = focus
+    last["key"] = state_key()   # the state on disk (file + autosave): nothing to write yet
     refresh()
     return box

@@ -380,8 +380,12 @@ def test_picker_widget_restores_the_autosave_on_a_rerun(tmp_path):
     click(box.figure.fig, box.figure.axes[0], (40.0, 25.0))
     click(box.figure.fig, box.figure.axes[1], (42.0, 25.0))
     click(box.figure.fig, box.figure.axes[0], (60.0, 45.0))   # being picked
-    # the cell is run again without saving: nothing is lost, and the panel says so
+    # the cell is run again without saving: nothing is lost, and the panel says so; showing
+    # the panel writes nothing (a report run only reads the experiment folder)
+    side = autosave_path(path)
+    stamp = side.stat().st_mtime_ns
     again = picker_widget(_images(), path, refine=None)
+    assert side.stat().st_mtime_ns == stamp
     assert again.picker.n_points == 3 and again.picker.current == 2
     assert "restored 1 unsaved change(s)" in again.note.value
     assert "1 unsaved change(s)" in again.unsaved.value
