@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 from .errors import GeometryError, ImageError, SemlabError
 from .adaptive import adaptive_icgn
 from .noise import image_noise_sigma
+from .registration import match_features
 from .subset import icgn_refine, oriented_subset, prefilter_image, zncc_match
 
 __all__ = ["MatchResult", "refine_correspondences", "auto_match", "merge_matches",
@@ -487,49 +488,6 @@ def _to_uint8(img):
     if hi <= lo:
         hi = lo + 1.0
     return np.clip((img - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
-
-
-def _features(img8, detector, n_max=20000):
-    """Keypoint (x, y) pixels (n, 2) and SIFT descriptors of an 8-bit image."""
-    import cv2
-
-    sift = cv2.SIFT_create(nfeatures=n_max)
-    if detector == "sift":
-        kp, des = sift.detectAndCompute(img8, None)
-    else:   # Shi–Tomasi corners described by SIFT
-        pts = cv2.goodFeaturesToTrack(img8, maxCorners=n_max, qualityLevel=0.01, minDistance=4)
-        if pts is None:
-            return np.zeros((0, 2)), None
-        kp = [cv2.KeyPoint(float(x), float(y), 8.0) for x, y in pts.reshape(-1, 2)]
-        kp, des = sift.compute(img8, kp)
-    xy = np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2)
-    return xy, des
-
-
-def _sparse_matches(img_ref8, img8, detector, ratio, n_max=20000, ref_cache=None):
-    """Ratio-tested descriptor matches (N, 2) ref positions and (N, 2) positions in img.
-
-    ``ref_cache`` (a dict) keeps the reference-view features between calls."""
-    import cv2
-
-    dets = ["sift", "shi-tomasi"] if detector == "both" else [detector]
-    src, dst = [], []
-    for d in dets:
-        if ref_cache is not None and d in ref_cache:
-            xa, da = ref_cache[d]
-        else:
-            xa, da = _features(img_ref8, d, n_max)
-            if ref_cache is not None:
-                ref_cache[d] = (xa, da)
-        xb, db = _features(img8, d, n_max)
-        if da is None or db is None or len(xa) < 2 or len(xb) < 2:
-            continue
-        knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
-        for m in knn:
-            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                src.append(xa[m[0].queryIdx])
-                dst.append(xb[m[0].trainIdx])
-    return np.array(src).reshape(-1, 2), np.array(dst).reshape(-1, 2)
 
 
 def _robust_affine(src, dst, thresh_px, seed):
@@ -1021,8 +979,8 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     for j in range(v):
         if j == ref:
             continue
-        src, dst = _sparse_matches(ref8, _to_uint8(ims[j]), detector, ratio, max_features,
-                                   ref_cache)
+        src, dst = match_features(ref8, _to_uint8(ims[j]), ratio=ratio, detector=detector,
+                                  n_max=max_features, cache=ref_cache)
         if len(src) < 6:
             raise GeometryError(f"only {len(src)} feature matches between views {ref} and {j}; "
                                 "the views do not overlap or have too little texture")
