@@ -132,6 +132,21 @@ def tracking_case(seed, F, drift_kw, method="subset", reg_model="similarity"):
     return int(keep.sum()), rows
 
 
+def figure(path, F, drift_kw):
+    """plot_drift of a registered synthetic series against its truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from semlab.plots import plot_drift
+
+    with tempfile.TemporaryDirectory() as tmp:
+        frames, _, folder = _series(tmp, "fig", 0, F, slip_um=0.0, **drift_kw)
+        reg = register_frames(frames)
+        fig = plot_drift(reg, truth=read_drift_csv(folder / "truth" / "drift.csv"))
+    fig.savefig(path, dpi=90)
+    print("wrote", path)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0,1,2")
@@ -142,7 +157,11 @@ def main():
     ap.add_argument("--scan", type=float, default=0.0, help="scan drift of the tracked series, px")
     ap.add_argument("--model", default="similarity")
     ap.add_argument("--method", default="subset")
+    ap.add_argument("--figure", help="write the README drift figure (seed 0) to this PNG and stop")
     a = ap.parse_args()
+    if a.figure:
+        return figure(a.figure, a.frames, dict(drift_shift_px=a.shift, drift_rotation_deg=a.rot,
+                                               drift_scale=a.scale, scan_drift_px=a.scan))
     seeds = [int(s) for s in a.seeds.split(",")]
     drift_kw = dict(drift_shift_px=a.shift, drift_rotation_deg=a.rot, drift_scale=a.scale,
                     scan_drift_px=a.scan)
