@@ -11,4 +11,6 @@ Conventions (see DESIGN notes in the README):
 
 __version__ = "0.1.0"
 
-from .errors import SemlabError  # noqa: F401
+from .errors import SemlabError, SemlabWarning, install_warning_format  # noqa: F401
+
+install_warning_format()

@@ -15,25 +15,24 @@
 Other columns (a ``note`` for instance) are allowed and ignored.
 
 Annotations are the one thing semlab writes into an experiment folder, so nothing is ever
-overwritten silently: :func:`backup_file` copies an existing file to ``<stem>.bak<suffix>``
-(then ``<stem>.bak1<suffix>``, ``<stem>.bak2<suffix>``, ...) before it is replaced.
+overwritten silently: :func:`semlab.io.write_with_backup` copies an existing file to
+``<stem>.bak<suffix>`` (then ``<stem>.bak1<suffix>``, ...) before it is replaced atomically.
 """
 
 from __future__ import annotations
 
 import csv
+import io as _io
 import math
-import os
 import re
-import shutil
-import stat
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ExperimentError
+from .io import backup_file, backup_path, read_text, write_with_backup
+from .io import write_with_backup as atomic_write_text  # noqa: F401  (the former name)
 
 __all__ = [
     "Correspondences",
@@ -42,7 +41,6 @@ __all__ = [
     "write_correspondences",
     "backup_path",
     "backup_file",
-    "atomic_write_text",
 ]
 
 _VIEW_COLUMN = re.compile(r"^([xy])(\d+)_px$")
@@ -145,8 +143,8 @@ def read_correspondences(path, n_views=None, image_shapes=None):
     if not path.is_file():
         raise ExperimentError(f"{path}: correspondences file not found; pick points with "
                               f"semlab.widgets.picker_widget or fix the path")
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        rows = list(csv.reader(fh))
+    text = read_text(path, "correspondences file")
+    rows = list(csv.reader(_io.StringIO(text, newline="")))
     rows = [(i + 1, r) for i, r in enumerate(rows) if any(c.strip() for c in r)]
     if not rows:
         raise ExperimentError(f"{path}: the file is empty; it needs a header row "
@@ -236,11 +234,30 @@ def read_correspondences(path, n_views=None, image_shapes=None):
         ids.append(pid)
         pts.append(p)
         cracks.append(c)
+    pts = np.asarray(pts, dtype=float).reshape(len(ids), n_v, 2)
+    _check_no_repeated_points(pts, ids, [line for line, _ in rows[1:]], path)
     return Correspondences(
         point_id=np.asarray(ids, dtype=int),
-        pts=np.asarray(pts, dtype=float).reshape(len(ids), n_v, 2),
+        pts=pts,
         crack_id=np.asarray(cracks, dtype=int) if has_crack else None,
         path=path)
+
+
+def _check_no_repeated_points(pts, ids, lines, path):
+    """Refuse two rows at the same position in a view (one surface point clicked twice)."""
+    for k in range(pts.shape[1]):
+        _, first, inverse = np.unique(pts[:, k], axis=0, return_index=True, return_inverse=True)
+        inverse = np.asarray(inverse).ravel()
+        rep = np.flatnonzero(first[inverse] != np.arange(len(pts)))
+        if len(rep):
+            i = int(rep[0])
+            j = int(first[inverse[i]])
+            x, y = pts[i, k]
+            more = f" ({len(rep)} repeated rows in all)" if len(rep) > 1 else ""
+            raise ExperimentError(
+                f"{path}: line {lines[i]} (point_id {ids[i]}) is at the same position as line "
+                f"{lines[j]} (point_id {ids[j]}) in view {k} (x={x:g}, y={y:g}){more}; a point "
+                "can be listed once: delete the repeated rows")
 
 
 def _as_correspondences(obj):
@@ -282,101 +299,6 @@ def _as_correspondences(obj):
     return Correspondences(point_id, pts, crack)
 
 
-def backup_path(path):
-    """The first free backup name for ``path``: ``<stem>.bak<suffix>``, then ``.bak1``, ...
-
-    Parameters
-    ----------
-    path : str or Path
-
-    Returns
-    -------
-    Path
-        e.g. ``correspondences.bak.csv``, or ``correspondences.bak1.csv`` if that exists.
-    """
-    path = Path(path)
-    k = 0
-    while True:
-        tag = ".bak" if k == 0 else f".bak{k}"
-        cand = path.with_name(f"{path.stem}{tag}{path.suffix}")
-        if not cand.exists():
-            return cand
-        k += 1
-
-
-def backup_file(path):
-    """Copy ``path`` to :func:`backup_path` if it exists.
-
-    Returns
-    -------
-    Path or None
-        The backup written, or None when ``path`` did not exist.
-    """
-    path = Path(path)
-    if not path.exists():
-        return None
-    dst = backup_path(path)
-    shutil.copy2(path, dst)
-    return dst
-
-
-def atomic_write_text(path, text, backup=True):
-    """Write ``text`` to ``path`` via a temporary file, keeping a backup of the old file.
-
-    Parameters
-    ----------
-    path : str or Path
-    text : str
-    backup : bool
-        Copy an existing ``path`` to :func:`backup_path` first (default). With False the
-        file is replaced without a copy.
-
-    Returns
-    -------
-    Path or None
-        The backup path, or None when nothing was backed up.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    bak = backup_file(path) if backup else None
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        _copy_mode(path, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    return bak
-
-
-def _copy_mode(path, tmp):
-    """Give ``tmp`` the permissions (and, where allowed, the owner) of ``path``, or those of
-    a new file under the user's umask when ``path`` does not exist: ``mkstemp`` creates
-    ``-rw-------``, and colleagues sharing the folder would lose read access."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        return
-    os.chmod(tmp, stat.S_IMODE(st.st_mode))
-    if hasattr(os, "chown"):
-        try:
-            os.chown(tmp, st.st_uid, st.st_gid)
-        except OSError:
-            pass  # only root may give a file away; the group may still be set below
-        else:
-            return
-        try:
-            os.chown(tmp, -1, st.st_gid)
-        except OSError:
-            pass
-
-
 def _fmt(v):
     s = f"{v:.4f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
@@ -416,4 +338,4 @@ def write_correspondences(path, corr_or_arrays, backup=True):
             c = int(corr.crack_id[i])
             cells.append(str(c) if c >= 0 else "")
         lines.append(",".join(cells))
-    return atomic_write_text(path, "\n".join(lines) + "\n", backup=backup)
+    return write_with_backup(path, "\n".join(lines) + "\n", backup=backup)

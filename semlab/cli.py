@@ -5,6 +5,9 @@
     semlab info EXPERIMENT              what was loaded: views, frames, sizes, pixel size, tilts
     semlab synth OUT [--seed ...]       write a synthetic experiment folder with truth/
     semlab run EXPERIMENT --out DIR     run the analysis and write reports + result files
+
+Errors are one line ``semlab: error: ...`` (exit code 2) naming the file, the key and the
+fix; warnings are one line ``semlab: warning: ...``.
 """
 
 from __future__ import annotations
@@ -127,8 +130,11 @@ def build_parser():
 
     pr = sub.add_parser("run", help="run the analysis notebooks on an experiment")
     pr.add_argument("experiment", help="experiment folder or its experiment.toml")
-    pr.add_argument("--out", required=True, help="output folder (new or empty)")
-    pr.add_argument("--force", action="store_true", help="write into a non-empty --out folder")
+    pr.add_argument("--out", required=True,
+                    help="output folder (new or empty), outside the experiment folder")
+    pr.add_argument("--force", action="store_true",
+                    help="replace the semlab results in a non-empty --out folder (only once the "
+                         "run has succeeded; other files are kept)")
     pr.add_argument("--only", default="", help="comma-separated notebook numbers, e.g. 04,05")
     pr.add_argument("--quiet", action="store_true")
     pr.add_argument("--scheduler", default="",
@@ -145,6 +151,10 @@ def main(argv=None):
         return args.func(args)
     except SemlabError as exc:
         print(f"semlab: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system refusal semlab did not foresee: still one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"semlab: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
 
 

@@ -24,3 +24,36 @@ class GeometryError(SemlabError):
 
 class TrackingError(SemlabError):
     """Tracking cannot proceed (one frame, blank images, every track lost)."""
+
+
+class SemlabWarning(UserWarning):
+    """A remark about the input that does not stop the analysis (e.g. the TOML overrides the
+    image metadata). Shown as one line, ``semlab: warning: ...``, without a source line."""
+
+
+def _is_semlab_category(category):
+    return issubclass(category, SemlabWarning) or category.__module__.startswith("semlab.")
+
+
+def install_warning_format():
+    """Show semlab's warnings as one line ``semlab: warning: <message>``.
+
+    Python prints a warning with the file, line number and the source line that raised it,
+    which buries the message a user needs. Only semlab's own categories
+    (:class:`SemlabWarning` and the warning classes defined in semlab's modules) are
+    reformatted; other warnings keep Python's format. Installed when semlab is imported;
+    calling it again does nothing.
+    """
+    import warnings
+
+    previous = warnings.formatwarning
+    if getattr(previous, "_semlab", False):
+        return
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        if _is_semlab_category(category):
+            return f"semlab: warning: {message}\n"
+        return previous(message, category, filename, lineno, line)
+
+    formatwarning._semlab = True
+    warnings.formatwarning = formatwarning

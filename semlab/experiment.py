@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ExperimentError
-from .io import IMAGE_SUFFIXES, read_image
+from .errors import ExperimentError, SemlabWarning
+from .io import IMAGE_SUFFIXES, read_image, read_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -52,6 +52,12 @@ CAMERAS = ("affine", "perspective")
 PIXEL_SIZE_RTOL = 0.01
 #: Disagreement in degrees between TOML and metadata tilts that is reported.
 TILT_ATOL_DEG = 0.05
+#: Pixel sizes an SEM can have, µm/px (10 pm to 100 µm per pixel); others are refused.
+PIXEL_SIZE_RANGE_UM = (1e-5, 100.0)
+#: Largest stage tilt accepted, degrees (|tilt| must be smaller; SEM stages reach ~70°).
+MAX_TILT_DEG = 80.0
+#: Smallest image side accepted, pixels (a matching window and its search range must fit).
+MIN_IMAGE_PX = 32
 
 
 @dataclass
@@ -245,7 +251,8 @@ def _number_list(value, key, toml_path, n=None):
         raise ExperimentError(f"{toml_path}: {key} must be a list of numbers, got {value!r}")
     arr = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(arr)):
-        raise ExperimentError(f"{toml_path}: {key} contains nan or inf")
+        raise ExperimentError(f"{toml_path}: {key} contains nan or inf; write a finite number "
+                              "for every entry")
     if n is not None and len(arr) != n:
         raise ExperimentError(f"{toml_path}: {key} has {len(arr)} values but there are {n} "
                               f"{'views' if 'stereo' in key else 'frames'}; give one per image")
@@ -253,9 +260,67 @@ def _number_list(value, key, toml_path, n=None):
 
 
 def _image_header(path):
-    """(shape, pixel_size_um, tilt_deg) of an image, reading it once."""
+    """(shape, pixel_size_um, tilt_deg, pixel digest) of an image, reading it once."""
+    import hashlib
+
     im = read_image(path)
-    return im.shape, im.pixel_size_um, im.tilt_deg
+    digest = hashlib.sha1(np.ascontiguousarray(im.data).tobytes()).hexdigest()
+    return im.shape, im.pixel_size_um, im.tilt_deg, digest
+
+
+def _check_image_size(shapes, paths, what, toml_path):
+    for p, (h, w) in zip(paths, shapes):
+        if min(h, w) < MIN_IMAGE_PX:
+            raise ExperimentError(
+                f"{toml_path}: {what}: {p.name} is {w}×{h} px, too small to match or track "
+                f"(semlab needs at least {MIN_IMAGE_PX}×{MIN_IMAGE_PX} px); give the full "
+                "SEM image")
+
+
+def _check_distinct_images(paths, digests, keys, toml_path, tilts=None):
+    """Refuse the same file twice and, with ``digests``, images with identical pixels."""
+    seen = {}
+    for i, p in enumerate(paths):
+        if p in seen:
+            j = seen[p]
+            raise ExperimentError(
+                f"{toml_path}: {keys[i]} and {keys[j]} are the same file ({p.name}); every "
+                "entry must be a different image")
+        seen[p] = i
+    if digests is None:
+        return
+    first = {}
+    for i, d in enumerate(digests):
+        if d in first:
+            j = first[d]
+            tilt = ("" if tilts is None else
+                    f" although their tilts are {tilts[j]:g}° and {tilts[i]:g}°")
+            raise ExperimentError(
+                f"{toml_path}: {keys[j]} ({paths[j].name}) and {keys[i]} ({paths[i].name}) "
+                f"have identical pixels{tilt}: a copy of one image shows no parallax, so "
+                "it gives no heights. List the views recorded at each tilt")
+        first[d] = i
+
+
+def _check_pixel_size(value, where, fix):
+    """A pixel size in µm/px an SEM can have, else ExperimentError naming ``where``."""
+    lo, hi = PIXEL_SIZE_RANGE_UM
+    ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+          and np.isfinite(value) and lo <= value <= hi)
+    if not ok:
+        raise ExperimentError(
+            f"{where} is {value!r} µm/px, which no SEM has (expected a positive number between "
+            f"{lo:g} and {hi:g} µm per pixel); {fix}")
+    return float(value)
+
+
+def _check_tilts(tilts, where, fix):
+    """Stage tilts in degrees: finite and ``|tilt| < MAX_TILT_DEG``."""
+    for i, t in enumerate(tilts):
+        if not (np.isfinite(t) and abs(t) < MAX_TILT_DEG):
+            raise ExperimentError(
+                f"{where(i)} is {t:g}°, not a stage tilt (|tilt| must be below "
+                f"{MAX_TILT_DEG:g}°; give degrees, not radians or a typo); {fix}")
 
 
 def _check_same_shape(shapes, paths, what, toml_path):
@@ -292,9 +357,9 @@ def _check_increasing(arr, key, toml_path):
 
 
 def _read_toml(toml_path):
+    text = read_text(toml_path, TOML_NAME)
     try:
-        with open(toml_path, "rb") as fh:
-            return tomllib.load(fh)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ExperimentError(f"{toml_path}: not valid TOML ({exc}); fix the syntax at that line") from exc
 
@@ -303,10 +368,30 @@ def _find_toml(path):
     path = Path(path)
     if path.is_dir():
         path = path / TOML_NAME
+        if not path.is_file():
+            raise ExperimentError(f"{path}: experiment file not found: {path.parent} is a folder "
+                                  f"without {TOML_NAME}; give an experiment folder (see the "
+                                  "README for the format)")
+    elif path.is_file() and path.suffix.lower() != ".toml":
+        kind = "an image" if path.suffix.lower() in IMAGE_SUFFIXES else "a file"
+        raise ExperimentError(f"{path}: this is {kind}, not an experiment; give the experiment "
+                              f"folder or its {TOML_NAME}, which lists the images (see the "
+                              "README for the format)")
     if not path.is_file():
         raise ExperimentError(f"{path}: experiment file not found; give the experiment folder "
                               f"or its {TOML_NAME} (see the README for the format)")
     return path.resolve()
+
+
+def find_experiment_root(path):
+    """The experiment folder of ``path`` (a folder or its ``experiment.toml``), resolved.
+
+    Raises
+    ------
+    ExperimentError
+        ``path`` is not an experiment (a folder without the TOML, an image, another file).
+    """
+    return _find_toml(path).parent
 
 
 def load(path) -> Experiment:
@@ -350,8 +435,11 @@ def load(path) -> Experiment:
             raise ExperimentError(f"{toml_path}: [stereo] views must list 2 or more images (stage "
                                   f"tilts of the same area), got {views!r}")
         view_paths = [_resolve(root, v, f"[stereo] views[{i}]", toml_path) for i, v in enumerate(views)]
+        view_keys = [f"[stereo] views[{i}]" for i in range(len(view_paths))]
+        _check_distinct_images(view_paths, None, view_keys, toml_path)
         headers = [_image_header(p) for p in view_paths]
         _check_same_shape([h[0] for h in headers], view_paths, "[stereo] views", toml_path)
+        _check_image_size([h[0] for h in headers], view_paths, "[stereo] views", toml_path)
         meta_pixel_sizes += [(h[1], p.name) for h, p in zip(headers, view_paths) if h[1] is not None]
         camera = st.get("camera", "affine")
         if camera not in CAMERAS:
@@ -362,14 +450,23 @@ def load(path) -> Experiment:
         if "tilt_deg" in st:
             tilt = _number_list(st["tilt_deg"], "[stereo] tilt_deg", toml_path, n=len(view_paths))
             tilt_deg, tilt_source = [float(t) for t in tilt], "experiment"
+            _check_tilts(tilt_deg, lambda i: f"{toml_path}: [stereo] tilt_deg[{i}]",
+                         "correct tilt_deg in experiment.toml")
             for i, (t, m) in enumerate(zip(tilt_deg, meta_tilts)):
-                if m is not None and abs(t - m) > TILT_ATOL_DEG:
+                if m is not None and not (np.isfinite(m) and abs(m) < MAX_TILT_DEG):
+                    notes.append(f"view {i} ({view_paths[i].name}): the image metadata tilt "
+                                 f"{m:g}° is impossible; using experiment.toml's {t:g}°")
+                elif m is not None and abs(t - m) > TILT_ATOL_DEG:
                     notes.append(f"view {i} ({view_paths[i].name}): experiment.toml tilt {t:g}° "
                                  f"overrides the image metadata {m:g}°")
         elif all(m is not None for m in meta_tilts):
             tilt_deg, tilt_source = [float(m) for m in meta_tilts], "metadata"
+            _check_tilts(tilt_deg, lambda i: f"{view_paths[i]}: the stage tilt in the image's "
+                         "SEM metadata", "give [stereo] tilt_deg = [...] in experiment.toml")
         else:
             tilt_deg, tilt_source = None, "unknown"
+        _check_distinct_images(view_paths, [h[3] for h in headers], view_keys, toml_path,
+                               tilt_deg)
         corr = st.get("correspondences")
         lines = st.get("lines")
         stereo = StereoSpec(
@@ -387,8 +484,11 @@ def load(path) -> Experiment:
         if "frames" not in se:
             raise ExperimentError(f"{toml_path}: [series] needs frames = [...] or a glob string")
         frame_paths = _expand_frames(se["frames"], root, toml_path)
+        _check_distinct_images(frame_paths, None, [f"[series] frames[{i}]" for i in
+                                                   range(len(frame_paths))], toml_path)
         headers = [_image_header(p) for p in frame_paths]
         _check_same_shape([h[0] for h in headers], frame_paths, "[series] frames", toml_path)
+        _check_image_size([h[0] for h in headers], frame_paths, "[series] frames", toml_path)
         meta_pixel_sizes += [(h[1], p.name) for h, p in zip(headers, frame_paths) if h[1] is not None]
         n = len(frame_paths)
         cycles = _number_list(se["cycles"], "[series] cycles", toml_path, n) if "cycles" in se else None
@@ -398,17 +498,25 @@ def load(path) -> Experiment:
         series = SeriesSpec(frame_paths=frame_paths, cycles=cycles, minutes=minutes,
                             shape=headers[0][0])
 
+    lo, hi = PIXEL_SIZE_RANGE_UM
+    meta_ok = [(m, name) for m, name in meta_pixel_sizes if np.isfinite(m) and lo <= m <= hi]
+    meta_bad = [(m, name) for m, name in meta_pixel_sizes if (m, name) not in meta_ok]
     if "pixel_size_um" in cfg:
-        ps = cfg["pixel_size_um"]
-        if isinstance(ps, bool) or not isinstance(ps, (int, float)) or not np.isfinite(ps) or ps <= 0:
-            raise ExperimentError(f"{toml_path}: pixel_size_um must be a positive number (µm per "
-                                  f"pixel), got {ps!r}")
-        pixel_size_um, source = float(ps), "experiment"
-        for m, name in meta_pixel_sizes:
+        ps = _check_pixel_size(cfg["pixel_size_um"], f"{toml_path}: pixel_size_um",
+                               "write the pixel size in µm per pixel, e.g. pixel_size_um = 0.03")
+        pixel_size_um, source = ps, "experiment"
+        for m, name in meta_bad[:1]:
+            notes.append(f"{name}: the image metadata pixel size {m:g} µm is impossible; using "
+                         f"experiment.toml's {ps:g} µm")
+        for m, name in meta_ok:
             if abs(m - ps) > PIXEL_SIZE_RTOL * ps:
                 notes.append(f"{name}: experiment.toml pixel_size_um {ps:g} µm overrides the image "
                              f"metadata {m:g} µm")
                 break
+    elif meta_bad:
+        m, name = meta_bad[0]
+        _check_pixel_size(m, f"{name}: the pixel size in the image's SEM metadata",
+                          f"add pixel_size_um = <µm per pixel> to the top of {toml_path}")
     elif meta_pixel_sizes:
         pixel_size_um, name = meta_pixel_sizes[0]
         source = f"metadata:{name}"
@@ -425,7 +533,7 @@ def load(path) -> Experiment:
                      pixel_size_um=pixel_size_um, pixel_size_source=source, stereo=stereo,
                      series=series, description=str(cfg.get("description", "")), notes=notes)
     for n in notes:
-        warnings.warn(n, stacklevel=2)
+        warnings.warn(n, SemlabWarning, stacklevel=2)
     # Parse the annotation files now so that a bad CSV or JSON fails at load time.
     exp.correspondences()
     exp.lines()

@@ -13,17 +13,46 @@ stage tilt are taken from the file where the SEM wrote them:
 The data bar that FEI and Zeiss microscopes append below the image is not sample surface and
 is removed (``SEMImage.data`` holds the image area only; ``databar_rows`` says how many rows
 were cut).
+
+Text files (``experiment.toml``, ``correspondences.csv``, ``lines.json``) are read by one
+reader, :func:`read_text`: UTF-8 with or without a byte-order mark; anything else (UTF-16,
+Latin-1, binary data) is refused with the file, the encoding it seems to have and the command
+that converts it. Files semlab writes go through :func:`atomic_write_bytes` /
+:func:`atomic_write_text` (a temporary name in the same folder, then ``os.replace``, so a
+reader never sees half a file) and, where they replace a user's file, :func:`write_with_backup`.
 """
 
 from __future__ import annotations
 
+import codecs
+import contextlib
+import logging
+import os
 import re
+import shutil
+import stat
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .errors import ImageError
+from .errors import ImageError, SemlabError
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "SEMImage",
+    "read_image",
+    "read_text",
+    "quiet_loggers",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "backup_path",
+    "backup_file",
+    "write_with_backup",
+    "write_tiff",
+    "zeiss_metadata_text",
+]
 
 #: File suffixes :func:`read_image` accepts.
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".bmp")
@@ -85,7 +114,9 @@ def _fei_calibration(meta, path):
     stage = meta.get("Stage", {}) or {}
     image = meta.get("Image", {}) or {}
     px = scan.get("PixelWidth")
-    pixel_size_um = float(px) * 1e6 if isinstance(px, (int, float)) and px > 0 else None
+    # kept as written (also zero, negative or NaN): semlab.experiment checks the range and
+    # names the file when a value is impossible
+    pixel_size_um = float(px) * 1e6 if isinstance(px, (int, float)) else None
     t = stage.get("StageT")
     tilt_deg = float(np.rad2deg(t)) if isinstance(t, (int, float)) else None
     rows = image.get("ResolutionY")
@@ -113,11 +144,26 @@ def _zeiss_calibration(meta, path):
     return pixel_size_um, tilt_deg, rows
 
 
+@contextlib.contextmanager
+def quiet_loggers(*names):
+    """Silence libraries' loggers for a block (tifffile logs warnings on damaged files; the
+    notebook machinery logs kernel noise): semlab raises its own one-line message instead."""
+    logs = [logging.getLogger(n) for n in names]
+    old = [lg.level for lg in logs]
+    for lg in logs:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, lvl in zip(logs, old):
+            lg.setLevel(lvl)
+
+
 def _read_tiff(path):
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with quiet_loggers("tifffile"), tifffile.TiffFile(path) as tif:
             page = tif.pages[0]
             data = page.asarray()
             source, meta = "none", {}
@@ -176,6 +222,9 @@ def read_image(path) -> SEMImage:
     suffix = path.suffix.lower()
     if suffix not in IMAGE_SUFFIXES:
         raise ImageError(f"{path}: unsupported image type {suffix!r}; use one of {IMAGE_SUFFIXES}")
+    if path.stat().st_size == 0:
+        raise ImageError(f"{path}: the file is empty (0 bytes), not an image; copy the image "
+                         "from the microscope again")
     if suffix in (".tif", ".tiff"):
         data, source, meta, (pixel_size_um, tilt_deg, rows) = _read_tiff(path)
     else:
@@ -245,3 +294,205 @@ def write_tiff(path, data, pixel_size_um=None, tilt_deg=None, overwrite=False):
     path.parent.mkdir(parents=True, exist_ok=True)
     tifffile.imwrite(path, np.asarray(data), extratags=extratags)
     return path
+
+
+# ---------------------------------------------------------------------------- text files
+_BOMS = ((codecs.BOM_UTF32_LE, "UTF-32"), (codecs.BOM_UTF32_BE, "UTF-32"),
+         (codecs.BOM_UTF16_LE, "UTF-16"), (codecs.BOM_UTF16_BE, "UTF-16"))
+
+
+def _guess_encoding(data):
+    """What non-UTF-8 bytes seem to be: ``(name for people, iconv name or None)``."""
+    for bom, name in _BOMS:
+        if data.startswith(bom):
+            return f"{name} (it starts with a {name} byte-order mark)", name
+    head = data[:4096]
+    if head and head.count(0) > len(head) // 8:
+        even, odd = head[0::2].count(0), head[1::2].count(0)
+        if max(even, odd) > 0.4 * (len(head) / 2) and min(even, odd) < 0.05 * (len(head) / 2):
+            name = "UTF-16BE" if even > odd else "UTF-16LE"
+            return f"{name} (every other byte is zero)", name
+        return "binary data, not text", None
+    # control bytes other than tab/newline/carriage return/form feed: not a text file
+    ctrl = sum(b < 32 and b not in (9, 10, 12, 13) for b in head)
+    if ctrl > max(2, len(head) // 100):
+        return "binary data, not text", None
+    return "Latin-1 / Windows-1252 (single-byte text, e.g. 'µ' stored as 0xB5)", "latin1"
+
+
+def read_text(path, what="text file"):
+    """Read a text file that must be UTF-8 (with or without a byte-order mark).
+
+    The one reader of semlab's text inputs (``experiment.toml``, ``correspondences.csv``,
+    ``lines.json``), so that every one of them accepts and refuses the same things.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        What the file is, for the message (e.g. ``"experiment.toml"``).
+
+    Returns
+    -------
+    str
+        The text, without a leading byte-order mark.
+
+    Raises
+    ------
+    SemlabError
+        The file cannot be read, or is not UTF-8: the message names the file, the encoding
+        it seems to have (UTF-16, Latin-1, binary) and how to convert it
+        (``iconv -f latin1 -t utf-8``).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SemlabError(f"{path}: {what} not found; check the path") from None
+    except IsADirectoryError:
+        raise SemlabError(f"{path}: is a folder, but a {what} (a text file) is expected") from None
+    except OSError as exc:
+        raise SemlabError(f"{path}: cannot read the {what} ({exc.strerror}); check the file's "
+                          "permissions") from None
+    if data.startswith(codecs.BOM_UTF8):
+        data = data[len(codecs.BOM_UTF8):]
+    bad = None
+    if not any(data.startswith(bom) for bom, _ in _BOMS):
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            bad = exc.start
+        else:
+            if "\x00" not in text:
+                return text
+            bad = text.index("\x00")
+    seems, enc = _guess_encoding(data)
+    where = "" if bad is None else f" (byte {bad}, line {data[:bad].count(10) + 1})"
+    if enc is None:
+        fix = f"This is not a text file: check that {what} names the right file"
+    else:
+        fix = (f"Convert it to UTF-8, e.g. iconv -f {enc} -t utf-8 '{path}' > converted "
+               f"&& mv converted '{path}' (or re-save it as UTF-8 in your editor)")
+    raise SemlabError(f"{path}: the {what} is not UTF-8 text{where}; it looks like {seems}. "
+                      f"{fix}")
+
+
+# ---------------------------------------------------------------------------- writing files
+def atomic_write_bytes(path, data):
+    """Write ``data`` to ``path`` atomically: a temporary file beside it, then ``os.replace``.
+
+    A reader (or a run that is interrupted) sees the old file or the complete new one, never
+    half a file. An existing file is replaced (see :func:`write_with_backup` to keep it) and
+    its permissions are kept; a new file gets those of the user's umask.
+
+    Parameters
+    ----------
+    path : str or Path
+    data : bytes
+
+    Returns
+    -------
+    Path
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        _copy_mode(path, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def _copy_mode(path, tmp):
+    """Give ``tmp`` the permissions (and, where allowed, the owner) of ``path``, or those of
+    a new file under the user's umask when ``path`` does not exist: ``mkstemp`` creates
+    ``-rw-------``, and colleagues sharing the folder would lose read access."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        return
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    if hasattr(os, "chown"):
+        try:
+            os.chown(tmp, st.st_uid, st.st_gid)
+        except OSError:
+            pass  # only root may give a file away; the group may still be set below
+        else:
+            return
+        try:
+            os.chown(tmp, -1, st.st_gid)
+        except OSError:
+            pass
+
+
+def atomic_write_text(path, text, encoding="utf-8"):
+    """Write ``text`` (UTF-8, newlines as given) atomically; see :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, str(text).encode(encoding))
+
+
+def backup_path(path):
+    """The first free backup name for ``path``: ``<stem>.bak<suffix>``, then ``.bak1``, ...
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Path
+        e.g. ``correspondences.bak.csv``, or ``correspondences.bak1.csv`` if that exists.
+    """
+    path = Path(path)
+    k = 0
+    while True:
+        tag = ".bak" if k == 0 else f".bak{k}"
+        cand = path.with_name(f"{path.stem}{tag}{path.suffix}")
+        if not cand.exists():
+            return cand
+        k += 1
+
+
+def backup_file(path):
+    """Copy ``path`` to :func:`backup_path` if it exists; return the copy (or None)."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    dst = backup_path(path)
+    shutil.copy2(path, dst)
+    return dst
+
+
+def write_with_backup(path, data, backup=True):
+    """Replace ``path`` atomically by ``data``, first copying an existing file to a backup.
+
+    The one writer of files a user owns (annotations in an experiment folder): nothing is
+    overwritten silently.
+
+    Parameters
+    ----------
+    path : str or Path
+    data : str (written as UTF-8) or bytes
+    backup : bool
+        Copy an existing ``path`` to :func:`backup_path` first (default). With False the
+        file is replaced without a copy.
+
+    Returns
+    -------
+    Path or None
+        The backup written, or None when nothing was backed up.
+    """
+    bak = backup_file(path) if backup else None
+    if isinstance(data, str):
+        atomic_write_text(path, data)
+    else:
+        atomic_write_bytes(path, bytes(data))
+    return bak

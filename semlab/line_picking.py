@@ -18,6 +18,7 @@ import numpy as np
 from ._canvas import _canvas_widget, _display_scale, _new_figure, _show_image, _toolbar_busy
 from .annotations import atomic_write_text
 from .errors import ExperimentError, GeometryError, SemlabError
+from .io import read_text
 from .picking import _UNDO_LEVELS, _check_images, _inside
 
 __all__ = ["LinePicker", "LinePickerFigure", "line_picker_widget"]
@@ -235,10 +236,10 @@ class LinePicker:
 
 def _read_lines_json(path):
     path = Path(path)
+    if not path.is_file():
+        raise ExperimentError(f"{path}: lines file not found")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ExperimentError(f"{path}: lines file not found") from None
+        data = json.loads(read_text(path, "lines file"))
     except json.JSONDecodeError as err:
         raise ExperimentError(f"{path}: not valid JSON ({err}); fix it or move it away "
                               f"before saving lines") from None

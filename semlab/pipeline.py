@@ -287,6 +287,10 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     views = exp.views()
     corr = exp.correspondences()
     clicks = None if corr is None or len(corr.pts) == 0 else corr.pts
+    if clicks is None and corr is not None and method in ("raw", "refined"):
+        raise SemlabError(f"{corr.path}: method {method!r} needs clicked points, but this "
+                          "correspondences file has only its header; add points, or use "
+                          "method='auto'")
     method = method or ("merged" if clicks is not None else "auto")
     pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress, **match_kw)
     notes = []
@@ -315,8 +319,11 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
                 "camera = 'affine'")
         if pts.shape[1] > 2:
             notes.append("camera = perspective: heights from views 0 and 1 only")
-        xyz_p, R_p, t_p, tilt_p = reconstruct.heights_perspective(
-            pts[:, 0], pts[:, 1], lines_cal.K, exp.pixel_size_um)
+        try:  # refuses affine-looking (SEM) views before any result exists
+            xyz_p, R_p, t_p, tilt_p = reconstruct.heights_perspective(
+                pts[:, 0], pts[:, 1], lines_cal.K, exp.pixel_size_um)
+        except GeometryError as exc:
+            raise GeometryError(f"{exp.toml_path}: [stereo] {exc}") from None
         calib["perspective"] = {"K": lines_cal.K, "R_1": R_p, "t_1_um": t_p,
                                 "tilt_difference_deg": tilt_p,
                                 "scale": "median depth = pixel_size_um * focal_px"}

@@ -46,6 +46,7 @@ __all__ = [
     "triangulate_perspective",
     "heights_perspective",
     "perspective_height_sigma",
+    "check_perspective_visible",
 ]
 
 TWO_VIEW_MESSAGE = (
@@ -738,7 +739,8 @@ def heights_perspective(x0, x1, K, pixel_size_um, F=None):
     ------
     GeometryError
         Fewer than 8 points, a degenerate eight-point problem (e.g. affine-looking views of
-        a nearly flat surface: use ``camera = "affine"``), or no consistent pose.
+        a nearly flat surface: use ``camera = "affine"``), matches that an affine camera
+        explains as well (:func:`check_perspective_visible`), or no consistent pose.
     """
     from .epipolar import fundamental_8point
 
@@ -752,6 +754,7 @@ def heights_perspective(x0, x1, K, pixel_size_um, F=None):
             raise GeometryError(
                 f"camera = 'perspective': {exc}. The views look like parallel projections "
                 "(usual for SEM above ~1000x): use camera = 'affine'") from exc
+    check_perspective_visible(a, b, F)
     X, R, t = triangulate_perspective(K, F, a, b)
     f = float(np.sqrt(abs(np.linalg.det(np.asarray(K, float)[:2, :2]))))
     depth = float(np.median(X[:, 2]))
@@ -798,3 +801,50 @@ def perspective_height_sigma(K, R, t_um, x0, x1, sigma_px):
     Xp, _ = _triangulate_linear(p0, p1, na,
                                 _normalized(kinv, b + np.column_stack([sig, 0 * sig])))
     return np.abs(Xp[:, 2] - X[:, 2]) * scale
+
+
+#: A perspective F must fit the matches this many times better (RMS) than an affine one.
+PERSPECTIVE_GAIN_MIN = 2.0
+
+
+def check_perspective_visible(x0, x1, F):
+    """Refuse a perspective reconstruction of views that look like parallel projections.
+
+    On SEM views at high magnification the eight-point F is fitted to the matching noise:
+    it is "determined" but meaningless, and the triangulated depths are noise of any size
+    (metres). The perspective model is used only when it explains the matches clearly
+    better than the affine camera: the RMS geometric residual of the affine epipolar
+    geometry (Gold Standard hyperplane, H&Z Alg. 14.1) must exceed
+    :data:`PERSPECTIVE_GAIN_MIN` times the RMS Sampson residual of ``F``.
+
+    Parameters
+    ----------
+    x0, x1 : (N, 2) arrays of (x, y) pixels
+    F : (3, 3) array
+        The perspective fundamental matrix, ``x1ᵀ F x0 = 0``.
+
+    Returns
+    -------
+    (rms_affine_px, rms_perspective_px)
+
+    Raises
+    ------
+    GeometryError
+        When the perspective F fits less than :data:`PERSPECTIVE_GAIN_MIN` times better.
+    """
+    from .epipolar import sampson_distance
+
+    a = np.asarray(x0, float)
+    b = np.asarray(x1, float)
+    X = np.hstack([b, a])
+    sv = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    rms_aff = float(sv[-1] / np.sqrt(len(X)))
+    rms_per = float(np.sqrt(np.mean(np.asarray(sampson_distance(F, a, b), float) ** 2)))
+    if not rms_aff > PERSPECTIVE_GAIN_MIN * rms_per:
+        raise GeometryError(
+            f"camera = 'perspective': the {len(a)} matches fit an affine (parallel-projection) "
+            f"camera as well as a perspective one (RMS residual {rms_aff:.3g} px affine, "
+            f"{rms_per:.3g} px perspective), so the perspective pose and depths are "
+            "undetermined and the heights would be noise. The views look like SEM views at "
+            "high magnification: use camera = 'affine'")
+    return rms_aff, rms_per

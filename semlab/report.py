@@ -13,9 +13,12 @@ from __future__ import annotations
 import html
 import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 
 from .errors import SemlabError
+from .io import atomic_write_text, quiet_loggers
 
 _TOGGLE = """
 <div style="position:fixed;top:8px;right:12px;z-index:1000">
@@ -50,15 +53,105 @@ def list_notebooks(only=None):
     return nbs
 
 
+#: Result files a run writes (the README's results contract) besides the notebook reports.
+RESULT_FILES = ("experiment_summary.txt", "points3d.csv", "calibration.json", "tracks.csv",
+                "displacements.csv", "strain.npz", "heightmap.tif", "heightmap_sigma.tif",
+                "heightmap.x3p", "heightmap.gsf", "heightmap.ply", "surface_parameters.csv",
+                "bands.csv", "drift.csv", "index.html")
+#: Where a failed run leaves its partial report (executed notebooks and HTML, no results).
+FAILED_DIR = "failed_run"
+_STAGING_PREFIX = ".semlab-run-"
+_SYSTEM_DIRS = (Path("/proc"), Path("/sys"), Path("/dev"))
+#: Kernel options: no "[IPKernelApp] WARNING | Kernel is running over TCP..." (nor other
+#: kernel log lines) in the terminal; a failing cell's error is in the notebook and the message.
+KERNEL_ARGUMENTS = ["--IPKernelApp.log_level=CRITICAL"]
+#: Loggers of the notebook machinery silenced during a run (they log kernel shutdown noise).
+_QUIET_LOGGERS = ("tornado", "traitlets", "papermill", "nbclient", "asyncio")
+
+
+def _inside(path, folder):
+    return path == folder or folder in path.parents
+
+
+def _owned(path):
+    """Is ``path`` (an entry of an output folder) something ``semlab run`` writes?"""
+    name = path.name
+    return (name in RESULT_FILES or name == FAILED_DIR or name.startswith(_STAGING_PREFIX)
+            or (re.match(r"^\d\d_.*\.(ipynb|html)$", name) is not None))
+
+
+def _has_content(out):
+    """Entries of ``out`` other than an earlier failed run's partial report."""
+    return [p for p in out.iterdir() if p.name != FAILED_DIR and not p.name.startswith(_STAGING_PREFIX)]
+
+
+def check_out_dir(out, experiment_root=None, force=False):
+    """Refuse an output folder that cannot or must not receive results, before any work.
+
+    Parameters
+    ----------
+    out : str or Path
+        The ``--out`` folder.
+    experiment_root : str or Path, optional
+        The experiment folder, which semlab only reads.
+    force : bool
+        Allow a non-empty folder (its semlab result files are replaced, see :func:`run`).
+
+    Returns
+    -------
+    Path
+        ``out`` resolved (symlinks followed).
+
+    Raises
+    ------
+    SemlabError
+        ``out`` is a file or lies under one, is inside (or equal to) the experiment folder or
+        the package's ``notebooks/``, is a system folder (``/proc``, ``/sys``, ``/dev``),
+        cannot be written, or is not empty without ``force``. One line naming the folder and
+        the fix.
+    """
+    given = Path(out).expanduser()
+    res = given.resolve()
+    for sys_dir in _SYSTEM_DIRS:
+        if _inside(res, sys_dir):
+            raise SemlabError(f"--out {given}: {sys_dir} is a system folder, not a place for "
+                              "results; give a folder of your own, e.g. --out ~/semlab-reports/run1")
+    if experiment_root is not None:
+        root = Path(experiment_root).resolve()
+        if _inside(res, root):
+            raise SemlabError(f"--out {given} is inside the experiment folder {root}, which semlab "
+                              f"only reads; write the results beside it, e.g. --out "
+                              f"{root.parent / (root.name + '-report')}")
+    env = os.environ.get("SEMLAB_NOTEBOOKS")
+    nb_dir = (Path(env) if env else Path(__file__).resolve().parents[1] / "notebooks").resolve()
+    if _inside(res, nb_dir):
+        raise SemlabError(f"--out {given} is inside semlab's notebooks folder {nb_dir}; write the "
+                          "results elsewhere, e.g. --out reports/run1")
+    if res.exists() and not res.is_dir():
+        raise SemlabError(f"--out {given} is a file; give a folder (new, or empty)")
+    parent = res
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise SemlabError(f"--out {given}: {parent} is a file, so no folder can be made there; "
+                          "give another --out")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise SemlabError(f"--out {given}: cannot write in {parent} (permission denied or a "
+                          "read-only file system); give a folder you can write to")
+    if res.exists() and _has_content(res) and not force:
+        raise SemlabError(f"--out {given} is not empty; choose a new folder or pass --force to "
+                          "replace the semlab results in it (other files are kept)")
+    return res
+
+
 def prepare_out_dir(out, force=False):
-    """Create ``out``; refuse a non-empty folder unless ``force`` (never overwrite silently)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise SemlabError(f"--out {out} is a file; give a folder")
-    if out.exists() and any(out.iterdir()) and not force:
-        raise SemlabError(f"--out {out} is not empty; choose a new folder or pass --force to "
-                          "write into it (files of the same name are replaced)")
-    out.mkdir(parents=True, exist_ok=True)
+    """Create ``out`` after :func:`check_out_dir`; return it (resolved)."""
+    out = check_out_dir(out, force=force)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SemlabError(f"--out {out}: cannot create the folder ({exc.strerror}); give a "
+                          "folder you can write to") from None
     return out
 
 
@@ -70,7 +163,7 @@ def to_html(nb_path, html_path):
     nb = nbformat.read(str(nb_path), as_version=4)
     body, _ = HTMLExporter().from_notebook_node(nb)
     body = re.sub(r"(<body[^>]*>)", lambda m: m.group(1) + _TOGGLE, body, count=1)
-    Path(html_path).write_text(body, encoding="utf-8")
+    atomic_write_text(html_path, body)
     return html_path
 
 
@@ -86,19 +179,62 @@ def _write_index(out, entries, exp):
 </head><body><h1>semlab report: {html.escape(exp.name)}</h1>
 <pre>{html.escape(exp.summary())}</pre>
 <h2>Notebooks</h2><table>{rows}</table><h2>Result files</h2><ul>{flist}</ul></body></html>"""
-    (out / "index.html").write_text(page, encoding="utf-8")
+    atomic_write_text(out / "index.html", page)
+
+
+def _remove(path):
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+def _publish(stage, out, clear_owned):
+    """Move the staged run into ``out``: each file by ``os.replace`` (atomic per file)."""
+    for p in list(out.iterdir()):
+        if p == stage:
+            continue
+        if p.name == FAILED_DIR or p.name.startswith(_STAGING_PREFIX) or (clear_owned and _owned(p)):
+            _remove(p)
+    for p in sorted(stage.iterdir()):
+        dest = out / p.name
+        if dest.is_dir() and not dest.is_symlink():
+            shutil.rmtree(dest)
+        os.replace(p, dest)
+    stage.rmdir()
+
+
+def _keep_failed(stage, out):
+    """A failed run: drop its result files, keep its reports as ``out/failed_run/``."""
+    for p in list(stage.iterdir()):
+        if not re.match(r"^\d\d_.*\.(ipynb|html)$", p.name):
+            _remove(p)
+    failed = out / FAILED_DIR
+    _remove(failed)
+    os.replace(stage, failed)
+    return failed
 
 
 def run(experiment, out, force=False, only=None, progress=True, kernel_name=None):
     """Execute the notebooks on an experiment and write reports and result files to ``out``.
 
+    The run is all or nothing: the notebooks write into a hidden staging folder inside
+    ``out``; only when every notebook has finished are the files moved into ``out`` (each by
+    an atomic rename). A failing run changes nothing in ``out``: its result files are
+    deleted and its executed notebooks (with the error) are kept in ``out/failed_run/``.
+
     Parameters
     ----------
     experiment : str or Path
-        Experiment folder or its ``experiment.toml``.
+        Experiment folder or its ``experiment.toml`` (only read).
     out : str or Path
-        Output folder: created; must be empty unless ``force``.
+        Output folder: created; must be empty unless ``force``. It must not be inside the
+        experiment folder or semlab's ``notebooks/`` (see :func:`check_out_dir`).
     force : bool
+        Replace the results in a non-empty ``out``: on success the semlab files already
+        there (``NN_*.ipynb``/``.html``, ``index.html`` and the result files of the contract)
+        are removed and the new ones moved in; files semlab does not write are kept. With
+        ``only``, the results of the other notebooks are kept (and available to the re-run).
     only : list of str, optional
         Notebook numbers to run (e.g. ``["04", "05"]``).
     progress : bool
@@ -111,30 +247,56 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
     Raises
     ------
     SemlabError
-        Invalid experiment, non-empty ``out``, or a failing notebook (its name and the failing
-        cell's error are in the message; the partly executed notebook is kept in ``out``).
+        Invalid experiment or ``out`` (checked before any work), or a failing notebook (its
+        name and the failing cell's error are in the message).
     """
     import papermill as pm
     from tqdm.auto import tqdm
 
-    from .experiment import load
+    from .experiment import find_experiment_root, load
 
+    check_out_dir(out, find_experiment_root(experiment), force)
     exp = load(experiment)
     nbs = list_notebooks(only)
-    out = prepare_out_dir(out, force).resolve()
-    (out / "experiment_summary.txt").write_text(exp.summary() + "\n", encoding="utf-8")
-    params = {"experiment": str(exp.root), "out_dir": str(out)}
-    entries = []
-    for nb in tqdm(nbs, desc="notebooks", disable=not progress):
-        dest = out / nb.name
-        try:
-            pm.execute_notebook(str(nb), str(dest), parameters=params, cwd=str(nb.parent),
-                                kernel_name=kernel_name, progress_bar=False)
-        except pm.PapermillExecutionError as exc:
+    out = prepare_out_dir(out, force)
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=_STAGING_PREFIX, dir=out))
+    except OSError as exc:
+        raise SemlabError(f"--out {out}: cannot write there ({exc.strerror}); give a folder you "
+                          "can write to") from None
+    try:
+        if only:  # a partial re-run reads the other notebooks' results (points3d.csv, ...)
+            for name in RESULT_FILES:
+                if (out / name).is_file():
+                    shutil.copy2(out / name, stage / name)
+        atomic_write_text(stage / "experiment_summary.txt", exp.summary() + "\n")
+        params = {"experiment": str(exp.root), "out_dir": str(stage)}
+        entries = []
+        for nb in tqdm(nbs, desc="notebooks", disable=not progress):
+            dest = stage / nb.name
+            try:
+                with quiet_loggers(*_QUIET_LOGGERS):
+                    pm.execute_notebook(str(nb), str(dest), parameters=params,
+                                        cwd=str(nb.parent), kernel_name=kernel_name,
+                                        progress_bar=False, extra_arguments=KERNEL_ARGUMENTS)
+            except Exception as exc:  # a failing cell, or a kernel that died or never started
+                if dest.is_file():
+                    to_html(dest, dest.with_suffix(".html"))
+                failed = _keep_failed(stage, out)
+                if isinstance(exc, pm.PapermillExecutionError):
+                    what = f"failed in cell {exc.exec_count}: {exc.ename}: {exc.evalue}"
+                else:
+                    what = f"could not be run ({type(exc).__name__}: {exc})"
+                raise SemlabError(
+                    f"notebook {nb.name} {what} (no result file was written; nothing else in "
+                    f"{out} changed; partial report: {failed / dest.with_suffix('.html').name})"
+                ) from None
             to_html(dest, dest.with_suffix(".html"))
-            raise SemlabError(f"notebook {nb.name} failed in cell {exc.exec_count}: "
-                              f"{exc.ename}: {exc.evalue} (partial report: {dest})") from None
-        to_html(dest, dest.with_suffix(".html"))
-        entries.append((nb.stem, dest.with_suffix(".html").name, "ok"))
-    _write_index(out, entries, exp)
+            entries.append((nb.stem, dest.with_suffix(".html").name, "ok"))
+        _write_index(stage, entries, exp)
+        _publish(stage, out, clear_owned=force and not only)
+    except BaseException:
+        if stage.exists():
+            shutil.rmtree(stage, ignore_errors=True)
+        raise
     return out

@@ -15,14 +15,13 @@ vanishing point at infinity has a last coordinate ≈ 0.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .epipolar import hartley_normalization
-from .annotations import backup_path
+from .io import read_text, write_with_backup
 from .errors import GeometryError, SemlabError
 
 __all__ = [
@@ -100,11 +99,11 @@ def read_lines(path):
         segments, a zero-length segment or NaN; the message names the file, view and family.
     """
     path = Path(path)
+    if not path.is_file():
+        raise _lines_error(path, "cannot read the file (not found); check `lines = ...` in the [stereo] section "
+                           "of experiment.toml")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise _lines_error(path, f"cannot read the file ({exc.strerror}); check `lines = ...` in "
-                           "the [stereo] section of experiment.toml") from None
+        doc = json.loads(read_text(path, "lines file"))
     except json.JSONDecodeError as exc:
         raise _lines_error(path, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}; "
                            "fix the file or re-save it with the line-clicking widget") from None
@@ -149,8 +148,8 @@ def _entries(views, images, path):
 def write_lines(path, views, images=None, backup=True):
     """Write line families to ``lines.json`` (schema ``"semlab-lines/1"``).
 
-    An existing file is never overwritten silently: it is first renamed to ``<stem>.bak.json``
-    (or ``.bak1.json``, ... if that exists; the policy of :func:`semlab.annotations.backup_path`). The data are validated as by
+    An existing file is never overwritten silently: it is first copied to ``<stem>.bak.json``
+    (or ``.bak1.json``, ... if that exists; :func:`semlab.io.write_with_backup`). The data are validated as by
     :func:`read_lines` before anything is touched.
 
     Parameters
@@ -172,14 +171,7 @@ def write_lines(path, views, images=None, backup=True):
     """
     path = Path(path)
     text = json.dumps({"schema": SCHEMA, "views": _entries(views, images, path)}, indent=1)
-    bak = None
-    if path.exists() and backup:
-        bak = backup_path(path)
-        os.replace(path, bak)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text + "\n", encoding="utf-8")
-    os.replace(tmp, path)
-    return bak
+    return write_with_backup(path, text + "\n", backup=backup)
 
 
 # ----------------------------------------------------------------------------- vanishing points

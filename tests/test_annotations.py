@@ -51,7 +51,7 @@ def test_write_accepts_arrays_and_tuples(tmp_path):
     b = read_correspondences(tmp_path / "b.csv", n_views=2)
     np.testing.assert_array_equal(b.point_id, [5, 9, 7])
     np.testing.assert_array_equal(b.crack_id, [-1, 2, -1])
-    rows = list(csv.DictReader(open(tmp_path / "b.csv")))
+    rows = list(csv.DictReader((tmp_path / "b.csv").read_text().splitlines()))
     assert rows[0]["crack_id"] == "" and rows[1]["crack_id"] == "2"
 
 

@@ -356,8 +356,8 @@ else:
     for n in res.notes:
         print("note:", n)
     if out_dir:
-        for f in pipeline.write_stereo_results(res, out_dir):
-            print("wrote", f)
+        for f in pipeline.write_stereo_results(res, out_dir, overwrite=True):  # out_dir is this run's own
+            print("wrote", f.name)
 '''),
     md("## Height map: measured points over view 0 (colour = z; nm below 1 µm)"),
     code('''
@@ -421,7 +421,7 @@ if res is not None:
     bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
                                 pts_px=res.pts[:, 0], crack_id=res.crack_id)
     if out_dir:
-        for f in heightmap.write_heightmap_results(hm, out_dir, bands=bands).values():
+        for f in heightmap.write_heightmap_results(hm, out_dir, bands=bands, overwrite=True).values():
             print("wrote", f)
     plots.show_heightmap_panels(hm.z_um, hm.sigma_um, exp.pixel_size_um)
 '''),
@@ -488,8 +488,8 @@ step suspends the track instead of turning into a jump. Results are stored by fr
     code(SETUP),
     code(TRACK_SETUP + '''
 if tr is not None and out_dir:
-    for f in pipeline.write_tracking_results(tr, out_dir):
-        print("wrote", f)
+    for f in pipeline.write_tracking_results(tr, out_dir, overwrite=True):  # out_dir is this run's own
+        print("wrote", f.name)
 '''),
     md("""
 ## Stage drift between the frames
