@@ -31,17 +31,26 @@ class SemlabWarning(UserWarning):
     image metadata). Shown as one line, ``semlab: warning: ...``, without a source line."""
 
 
-def _is_semlab_category(category):
-    return issubclass(category, SemlabWarning) or category.__module__.startswith("semlab.")
+def _is_semlab_warning(category, filename):
+    """A warning of semlab's: its category, or raised from semlab's own source files."""
+    import os
+
+    if issubclass(category, SemlabWarning) or category.__module__.startswith("semlab."):
+        return True
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        return os.path.commonpath([here, os.path.abspath(filename)]) == here
+    except (TypeError, ValueError):
+        return False
 
 
 def install_warning_format():
     """Show semlab's warnings as one line ``semlab: warning: <message>``.
 
     Python prints a warning with the file, line number and the source line that raised it,
-    which buries the message a user needs. Only semlab's own categories
-    (:class:`SemlabWarning` and the warning classes defined in semlab's modules) are
-    reformatted; other warnings keep Python's format. Installed when semlab is imported;
+    which buries the message a user needs. Only semlab's warnings (:class:`SemlabWarning`,
+    the warning classes defined in semlab's modules, and warnings raised from semlab's
+    source files) are reformatted; other warnings keep Python's format. Installed when semlab is imported;
     calling it again does nothing.
     """
     import warnings
@@ -51,7 +60,7 @@ def install_warning_format():
         return
 
     def formatwarning(message, category, filename, lineno, line=None):
-        if _is_semlab_category(category):
+        if _is_semlab_warning(category, filename):
             return f"semlab: warning: {message}\n"
         return previous(message, category, filename, lineno, line)
 

@@ -305,9 +305,11 @@ def _check_distinct_images(paths, digests, keys, toml_path, tilts=None):
 def _check_pixel_size(value, where, fix):
     """A pixel size in µm/px an SEM can have, else ExperimentError naming ``where``."""
     lo, hi = PIXEL_SIZE_RANGE_UM
-    ok = (not isinstance(value, bool) and isinstance(value, (int, float))
-          and np.isfinite(value) and lo <= value <= hi)
-    if not ok:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ExperimentError(f"{where} must be a number of µm per pixel, got {value!r}"
+                              + (" (a string: remove the quotes)" if isinstance(value, str) else "")
+                              + f"; {fix}")
+    if not (np.isfinite(value) and lo <= value <= hi):
         raise ExperimentError(
             f"{where} is {value!r} µm/px, which no SEM has (expected a positive number between "
             f"{lo:g} and {hi:g} µm per pixel); {fix}")
@@ -421,6 +423,10 @@ def load(path) -> Experiment:
     if "stereo" not in cfg and "series" not in cfg:
         raise ExperimentError(f"{toml_path}: neither [stereo] nor [series] is given; an experiment "
                               "needs at least one of them")
+    for key in ("name", "description"):
+        if key in cfg and not isinstance(cfg[key], str):
+            raise ExperimentError(f"{toml_path}: {key} must be a string, e.g. {key} = \"...\", "
+                                  f"got {cfg[key]!r}")
     notes = []
     meta_pixel_sizes = []  # (value, file) from image metadata
 

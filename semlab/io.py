@@ -188,7 +188,8 @@ def _read_other(path):
 
     data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if data is None:
-        raise ImageError(f"{path}: cannot read this image; use TIFF or PNG")
+        raise ImageError(f"{path}: cannot read this image (damaged, or not a {path.suffix} "
+                         "image); re-export it as TIFF or PNG")
     if data.ndim == 3:
         # OpenCV gives BGR(A); SEM images are grey, so average the colour channels.
         data = data[..., :3].mean(axis=2)
@@ -241,7 +242,8 @@ def read_image(path) -> SEMImage:
         data = data[:rows]
     data = data.astype(np.float64)
     if not np.all(np.isfinite(data)):
-        raise ImageError(f"{path}: the image contains NaN or infinite values")
+        raise ImageError(f"{path}: the image contains NaN or infinite values; export it as an "
+                         "8/16-bit TIFF or PNG")
     return SEMImage(data=data, path=path, pixel_size_um=pixel_size_um, tilt_deg=tilt_deg,
                     source=source, bit_depth=bit_depth, databar_rows=databar_rows, metadata=meta)
 
@@ -369,7 +371,7 @@ def read_text(path, what="text file"):
     seems, enc = _guess_encoding(data)
     where = "" if bad is None else f" (byte {bad}, line {data[:bad].count(10) + 1})"
     if enc is None:
-        fix = f"This is not a text file: check that {what} names the right file"
+        fix = f"This is not a text file: check that it is the right {what}"
     else:
         fix = (f"Convert it to UTF-8, e.g. iconv -f {enc} -t utf-8 '{path}' > converted "
                f"&& mv converted '{path}' (or re-save it as UTF-8 in your editor)")

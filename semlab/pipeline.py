@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GeometryError, SemlabError
+from .errors import GeometryError, SemlabError, SemlabWarning
 
 #: Tilt-axis deviations from the image y axis smaller than this are treated as zero.
 AXIS_TOLERANCE_DEG = 0.2
@@ -143,7 +143,7 @@ def match_views(views, clicks=None, method="auto", progress=True, **kw):
         if (~ok).any():
             warnings.warn(f"{(~ok).sum()} clicked points could not be refined and were left out "
                           f"({', '.join(sorted(set(map(str, np.asarray(r.reason)[~ok]))))})",
-                          stacklevel=2)
+                          SemlabWarning, stacklevel=2)
     if method in ("auto", "merged"):
         a = matching.auto_match(views, progress=progress, **kw.get("auto", {}))
         ok = np.asarray(a.valid)
@@ -635,7 +635,8 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
                                            gauge_length_px=gauge_length_px, heights=heights)
         strain["history"] = tracking_strain_history(tracks, exp.series.cycles, s)
     else:
-        warnings.warn("no frame before the last has enough valid tracks for strain", stacklevel=2)
+        warnings.warn("no frame before the last has enough valid tracks for strain", SemlabWarning,
+                      stacklevel=2)
     return TrackingResult(tracks=tracks, seed=kind, stereo_index=stereo_index, z_um=z,
                           frame_from=first, dx_um=disp["dx_um"], dy_um=disp["dy_um"], d_um=disp["d_um"],
                           dx_raw_um=disp["dx_raw_um"], dy_raw_um=disp["dy_raw_um"],

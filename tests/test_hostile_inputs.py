@@ -169,6 +169,36 @@ def _all_same_clicks(exp):
     p.write_text("\n".join([lines[0]] + [f"{i},10,10,12,10" for i in range(8)]) + "\n")
 
 
+# wrong types and wrong files in the right places
+CASES["pixel_size_um-string"] = (lambda exp: add_top(exp, 'pixel_size_um = "0.03"'),
+                                 ["experiment.toml", "pixel_size_um", "remove the quotes"])
+CASES["name-table"] = (lambda exp: set_toml(exp, 'name = "', 'name = [1, 2]  # "'),
+                       ["experiment.toml", "name must be a string"])
+CASES["lines-is-an-image"] = (
+    lambda exp: set_toml(exp, '"annotations/lines.json"', '"calibration/block_0.png"'),
+    ["block_0.png", "lines file", "not a text file"])
+CASES["correspondences-is-an-image"] = (
+    lambda exp: set_toml(exp, '"annotations/correspondences.csv"', '"end_state/view_0.tif"'),
+    ["view_0.tif", "correspondences file", "not a text file"])
+CASES["tif-holding-a-png"] = (
+    lambda exp: shutil.copy(exp / "calibration" / "block_0.png", exp / "end_state" / "view_1.tif"),
+    ["view_1.tif", "cannot read this TIFF"])
+
+
+def _text_as_png(exp):
+    (exp / "end_state" / "x.png").write_text("not an image")
+    set_toml(exp, '"end_state/view_1.tif"', '"end_state/x.png"')
+
+
+def _nan_image(exp):
+    import tifffile
+
+    tifffile.imwrite(exp / "end_state" / "view_1.tif", np.full((96, 128), np.nan, np.float32))
+
+
+CASES["png-holding-text"] = (_text_as_png, ["x.png", "cannot read this image", "re-export"])
+CASES["nan-image"] = (_nan_image, ["view_1.tif", "NaN", "8/16-bit"])
+
 CASES["repeated-click"] = (_repeat_click, ["correspondences.csv", "point_id 999", "same position",
                                            "delete the repeated"])
 CASES["identical-clicks"] = (_all_same_clicks, ["correspondences.csv", "line 3", "same position"])
@@ -326,6 +356,18 @@ def test_warnings_are_one_line_without_source(small_experiment):
     assert r.stderr.splitlines() == [
         "semlab: warning: view_0.tif: experiment.toml pixel_size_um 0.05 µm overrides the "
         "image metadata 0.03 µm"]
+
+
+def test_semlab_warnings_format_as_one_line():
+    import warnings
+
+    from semlab import pipeline
+    from semlab.errors import SemlabWarning
+
+    fmt = warnings.formatwarning
+    assert fmt("odd", SemlabWarning, "/elsewhere/user.py", 3) == "semlab: warning: odd\n"
+    assert fmt("odd", UserWarning, pipeline.__file__, 3) == "semlab: warning: odd\n"
+    assert "user.py:3" in fmt("odd", UserWarning, "/elsewhere/user.py", 3)  # not ours
 
 
 def test_cli_error_has_no_traceback_in_a_real_process(small_experiment):
