@@ -189,6 +189,13 @@ def _remove(path):
         path.unlink()
 
 
+def _show_final_paths(nb_path, stage, final):
+    """In an executed notebook, name the folder its files end up in, not the staging folder."""
+    text = Path(nb_path).read_text(encoding="utf-8")
+    if str(stage) in text:
+        atomic_write_text(nb_path, text.replace(str(stage), str(final)))
+
+
 def _publish(stage, out, clear_owned):
     """Move the staged run into ``out``: each file by ``os.replace`` (atomic per file)."""
     for p in list(out.iterdir()):
@@ -281,6 +288,7 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
                                         progress_bar=False, extra_arguments=KERNEL_ARGUMENTS)
             except Exception as exc:  # a failing cell, or a kernel that died or never started
                 if dest.is_file():
+                    _show_final_paths(dest, stage, out / FAILED_DIR)
                     to_html(dest, dest.with_suffix(".html"))
                 failed = _keep_failed(stage, out)
                 if isinstance(exc, pm.PapermillExecutionError):
@@ -291,6 +299,7 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
                     f"notebook {nb.name} {what} (no result file was written; nothing else in "
                     f"{out} changed; partial report: {failed / dest.with_suffix('.html').name})"
                 ) from None
+            _show_final_paths(dest, stage, out)
             to_html(dest, dest.with_suffix(".html"))
             entries.append((nb.stem, dest.with_suffix(".html").name, "ok"))
         _write_index(stage, entries, exp)

@@ -444,6 +444,7 @@ def test_force_replaces_results_only_after_success(small_experiment, tmp_path, m
     assert "stale" not in (out / "01_second.html").read_text()
     assert not (out / "failed_run").exists()
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert ".semlab-run-" not in (out / "00_write.html").read_text()   # reports name out
     assert checksum(small_experiment) == before
 
 
