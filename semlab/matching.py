@@ -298,9 +298,10 @@ def _combine(sq_pts, sq_sig, or_pts, or_sig, or_zn, min_zncc, kappa):
 
 # --------------------------------------------------------------------------- refine clicks
 def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
-                           warp="affine", min_zncc=0.8, *, smooth_sigma_px=0.0,
+                           warp="affine", min_zncc=0.8, *, smooth_sigma_px=None,
                            band_aware=True, band_half_width_px=3, kappa=1.0,
-                           target_sigma_px=None, max_half_window=28, progress=False):
+                           target_sigma_px=0.05, min_half_window=7, max_half_window=28,
+                           progress=False):
     """Refine hand-clicked correspondences to sub-pixel accuracy.
 
     The reference-view positions are kept exactly (they define which material point is
@@ -328,9 +329,11 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         Subset shape function of the IC-GN step.
     min_zncc : float
         Matches with a lower ZNCC in any view are marked invalid.
-    smooth_sigma_px : float
+    smooth_sigma_px : float or None
         Gaussian pre-smoothing of the views for IC-GN (see
-        :func:`semlab.subset.icgn_refine`); reduces noise-induced bias on noisy images.
+        :func:`semlab.subset.icgn_refine`); reduces noise-induced bias on noisy images and
+        keeps the noise of the reference gradients out of the predicted σ. None: 0.8 px
+        with ``target_sigma_px``, else 0.
     band_aware : bool
         Also match each point with a thin rectangular subset (``4h+1`` long,
         ``2 band_half_width_px + 1`` wide) along the local direction of the parallax bands,
@@ -341,13 +344,18 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         parallax.
     band_half_width_px, kappa : float
         See ``band_aware``.
-    target_sigma_px : float, optional
+    target_sigma_px : float or None
         Size each point's square subset by its information: the smallest from
-        ``half_window`` up to ``max_half_window`` whose predicted σ reaches this target,
-        with the shape function it supports (:func:`semlab.adaptive.adaptive_icgn`;
-        ``warp`` is then ignored). None: one fixed ``half_window``.
-    max_half_window : int
-        Largest subset half size with ``target_sigma_px``.
+        ``min_half_window`` up to ``max_half_window`` whose predicted σ reaches this target
+        (pixels), with the shape function it supports
+        (:func:`semlab.adaptive.adaptive_icgn`; ``warp`` and ``half_window`` are then
+        ignored, ``min_half_window`` sizes the band-aware subsets). None: one fixed
+        ``half_window``. On the
+        192×256 accuracy-matrix cells (realistic noise, ±5°) 0.05 px gave height RMSE
+        35.9 / 25.2 / 15.4 nm (polished / real:fei / speckle) against 41.6 / 38.8 / 18.6 nm
+        with a fixed 21×21 subset and 43.1 / 49.7 / 27.3 nm for ECC.
+    min_half_window, max_half_window : int
+        Smallest and largest subset half sizes with ``target_sigma_px``.
     progress : bool
         Show progress bars.
 
@@ -392,6 +400,10 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
     reason = np.full(n, "", dtype=object)
     side = np.zeros(n, int)
     pr = p[:, ref]
+    if smooth_sigma_px is None:
+        smooth_sigma_px = 0.0 if target_sigma_px is None else 0.8
+    if target_sigma_px is not None:
+        half_window = min_half_window      # the square ladder's start sizes the band subsets
     ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
     for j in range(v):
         if j == ref:
