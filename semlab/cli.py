@@ -67,13 +67,24 @@ def _cmd_synth(args):
     kw = dict(seed=args.seed, pixel_size_um=args.pixel_size, tilts_deg=args.tilts,
               n_frames=args.frames, n_clicks=args.clicks, click_noise_px=args.click_noise,
               slip_um=args.slip, detector=detector, progress=not args.quiet)
+    drift = {}
+    if args.drift:
+        if len(args.drift) not in (3, 4):
+            raise SemlabError(f"--drift takes SHIFT_PX,ROT_DEG,SCALE[,SCAN_PX] (e.g. 30,1.2,0.003), "
+                              f"got {len(args.drift)} values")
+        if args.texture.startswith("real:"):
+            raise SemlabError("--drift is not available with real: textures yet; use a synthetic "
+                              "texture (speckle, polished, featureless)")
+        drift = dict(zip(("drift_shift_px", "drift_rotation_deg", "drift_scale", "scan_drift_px"),
+                         args.drift))
     if args.texture.startswith("real:"):
         from . import realtex
 
         path = realtex.make_experiment(args.out, args.texture[5:],
                                        size=args.size, **kw)
     else:
-        path = make_experiment(args.out, size=args.size or (384, 512), texture=args.texture, **kw)
+        path = make_experiment(args.out, size=args.size or (384, 512), texture=args.texture, **kw,
+                               **drift)
     print(f"wrote {path}")
     return 0
 
@@ -125,6 +136,9 @@ def build_parser():
                     help="detected electrons per pixel at full signal (overrides the --noise preset)")
     ps.add_argument("--scan-jitter", type=float, default=0.0,
                     help="scan-line jitter in px (1σ row shift; default 0)")
+    ps.add_argument("--drift", type=_floats, default=None,
+                    help="stage drift of every series frame but the last: SHIFT_PX,ROT_DEG,SCALE"
+                         "[,SCAN_PX], e.g. 30,1.2,0.003 (truth in truth/drift.csv)")
     ps.add_argument("--quiet", action="store_true")
     ps.set_defaults(func=_cmd_synth)
 

@@ -40,6 +40,18 @@ def test_synth_series_only(tmp_path):
     assert exp.stereo is None and len(exp.frames()) == 3
 
 
+def test_synth_drift_writes_its_truth(tmp_path, capsys):
+    out = tmp_path / "d"
+    assert main(["synth", str(out), "--size", "64x96", "--frames", "3", "--tilts=", "--quiet",
+                 "--drift", "10,1,0.002"]) == 0
+    from semlab.registration import read_drift_csv
+
+    d = read_drift_csv(out / "truth" / "drift.csv")
+    assert len(d["frame"]) == 3 and d["dx_px"][-1] == 0 and 5 <= np.hypot(d["dx_px"][0], d["dy_px"][0]) <= 10
+    assert main(["synth", str(tmp_path / "e"), "--quiet", "--drift", "10,1"]) == 2
+    assert "--drift takes" in capsys.readouterr().err
+
+
 def test_run_refuses_nonempty_out(small_experiment_master, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
