@@ -158,6 +158,7 @@ def main():
     ap.add_argument("--model", default="similarity")
     ap.add_argument("--method", default="subset")
     ap.add_argument("--figure", help="write the README drift figure (seed 0) to this PNG and stop")
+    ap.add_argument("--tracking-only", action="store_true", help="skip the drift-recovery table")
     a = ap.parse_args()
     if a.figure:
         return figure(a.figure, a.frames, dict(drift_shift_px=a.shift, drift_rotation_deg=a.rot,
@@ -186,6 +187,8 @@ def main():
             per = np.round(r[4].mean(axis=1), 2).tolist()
             print(f"| {seed} | {n} | {label} | {r[0]:.3f}{rel} | {r[1]:.3f}{d} | {per} | {common} "
                   f"| {r[2]} | {r[3]:.1f} |")
+    if a.tracking_only:
+        return
     print("\n| seed | case | largest error over the image (px), frames 0..F-2 | max |")
     print("|---|---|---|---|")
     for seed in seeds:
