@@ -56,8 +56,10 @@ TILT_ATOL_DEG = 0.05
 PIXEL_SIZE_RANGE_UM = (1e-5, 100.0)
 #: Largest stage tilt accepted, degrees (|tilt| must be smaller; SEM stages reach ~70°).
 MAX_TILT_DEG = 80.0
-#: Smallest image side accepted, pixels (a matching window and its search range must fit).
-MIN_IMAGE_PX = 32
+#: Smallest image side accepted, pixels: automatic matching needs a 21 px window, its search
+#: range and a border on both sides (33 px) and room for a grid of points (below ~48 px it
+#: finds none); any SEM image is far larger.
+MIN_IMAGE_PX = 64
 
 
 @dataclass

@@ -148,7 +148,7 @@ def test_no_pixel_size_anywhere(tmp_path):
     import cv2
 
     for i in range(2):
-        cv2.imwrite(str(tmp_path / f"v{i}.png"), np.full((40, 48), 10 * i, np.uint8))
+        cv2.imwrite(str(tmp_path / f"v{i}.png"), np.full((64, 72), 10 * i, np.uint8))
     (tmp_path / "experiment.toml").write_text('[stereo]\nviews = ["v0.png", "v1.png"]\n')
     with pytest.raises(ExperimentError, match="no pixel size anywhere.*add pixel_size_um"):
         load(tmp_path)

@@ -147,12 +147,12 @@ def _truncate(exp):
 
 
 CASES["truncated-tiff"] = (_truncate, ["frame_002.tif", "cannot read this TIFF", "complete"])
-for size in ((3, 3), (16, 300)):
+for size in ((3, 3), (16, 300), (40, 40)):
     CASES[f"tiny-image-{size[0]}x{size[1]}"] = (
         lambda exp, s=size: [write_tiff(exp / "end_state" / f"view_{k}.tif",
                                         (np.arange(s[0] * s[1]).reshape(s) * (k + 1) % 255).astype(np.uint8),
                                         pixel_size_um=0.03, overwrite=True) for k in range(2)],
-        ["view_0.tif", "too small", "32×32"])
+        ["view_0.tif", "too small", "64×64"])
 
 
 def _repeat_click(exp):
