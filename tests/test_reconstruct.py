@@ -404,3 +404,94 @@ def test_estimate_tilts_noise_free_view_removes_the_bias():
     assert np.allclose(np.diff(t.tilt_deg), np.diff(tilts), atol=1e-6)
     with pytest.raises(GeometryError, match="noise_free_view"):
         estimate_tilts(clean, pixel_size_um=S, n_boot=0, progress=False, noise_free_view=3)
+
+
+# ----------------------------------------------------------------------------- tilt checks
+
+from semlab.tiltcheck import axis_is_significant, check_tilts, tilt_axis_sigma, x_scales  # noqa: E402
+
+
+def noisy(pts, sigma_px, seed=0):
+    return pts + np.random.default_rng(seed).normal(0, sigma_px, pts.shape)
+
+
+def test_x_scale_of_the_flat_surface_is_the_cosine_ratio():
+    xyz = make_scene(n=400, seed=3)
+    tilts = (0.0, 10.0, 20.0)
+    xs = x_scales(noisy(project(xyz, tilts), 0.03), sigma_px=0.03)
+    want = np.cos(np.deg2rad(tilts)) / np.cos(0.0)
+    assert np.all(np.abs(xs["A"] - want) < 4 * xs["A_sigma"] + 1e-12)
+    assert np.all(xs["A_sigma"][1:] < 2e-4)
+    assert 0.6 < xs["inliers"].mean() < 0.75  # the plane, not the 30 % of bands
+
+
+def test_given_tilts_that_agree_pass_and_report_the_surface_tilt():
+    xyz = make_scene(n=400, seed=4)
+    pre = np.deg2rad(3.0)  # the sample sits 3° tilted on the stage
+    xyz_t = xyz.copy()
+    xyz_t[:, 0] = xyz[:, 0] * np.cos(pre) - xyz[:, 2] * np.sin(pre)
+    xyz_t[:, 2] = xyz[:, 0] * np.sin(pre) + xyz[:, 2] * np.cos(pre)
+    for scene, beta in ((xyz, 0.0), (xyz_t, 3.0)):
+        chk = check_tilts(noisy(project(scene, (-5.0, 5.0)), 0.03), (-5.0, 5.0), sigma_px=0.03,
+                          pixel_size_um=S)
+        assert chk.consistent and chk.relief_detected
+        assert abs(abs(chk.pretilt_deg) - beta) < 0.6
+
+
+def test_contradicting_tilts_are_refused_with_the_tilts_to_use():
+    xyz = make_scene(n=400, seed=5)
+    pts = noisy(project(xyz, (-5.0, 5.0)), 0.03)
+    with pytest.raises(GeometryError, match=r"tilt_deg = \[-5.0, 85.0\] contradicts") as e:
+        check_tilts(pts, (-5.0, 85.0), sigma_px=0.03)
+    msg = str(e.value)
+    assert "measured 1.00" in msg and "predict 0." in msg
+    assert "tilt_deg = [-5.0, 5.0" in msg  # the estimate to use instead
+    chk = check_tilts(pts, (-5.0, 85.0), sigma_px=0.03, strict=False)
+    assert not chk.consistent and np.allclose(chk.suggested_tilt_deg, (-5.0, 5.0), atol=0.3)
+    # 3 views, one tilt wrong by 20°
+    pts3 = noisy(project(xyz, (-5.0, 0.0, 5.0)), 0.03)
+    with pytest.raises(GeometryError, match="contradicts"):
+        check_tilts(pts3, (-5.0, 0.0, 25.0), sigma_px=0.03)
+    chk = check_tilts(pts3, (-5.0, 0.0, 25.0), sigma_px=0.03, strict=False)
+    assert np.allclose(chk.suggested_tilt_deg, (-5.0, 0.0, 5.0), atol=0.5)
+
+
+def test_identical_views_refused_flat_sample_reported_flat():
+    xyz = make_scene(n=300, seed=6)
+    pts = project(xyz, (0.0, 0.0))
+    with pytest.raises(GeometryError, match="no parallax at all"):
+        check_tilts(pts, (-5.0, 5.0))
+    flat = xyz.copy()
+    flat[:, 2] = 0.2 + 0.01 * flat[:, 1]
+    chk = check_tilts(noisy(project(flat, (-5.0, 5.0)), 0.03), (-5.0, 5.0), sigma_px=0.03,
+                      pixel_size_um=S)
+    assert chk.consistent and not chk.relief_detected
+    assert "flat within" in chk.message
+    # 3σ of the parallax noise sqrt(2)·0.03 px turned into height at 10° of tilt
+    assert chk.detection_limit_um == pytest.approx(3 * np.sqrt(2) * 0.03 * S / np.sin(
+        np.deg2rad(10.0)), rel=0.05)
+
+
+def test_tilt_axis_rotated_only_when_significant():
+    xyz = make_scene(n=300, seed=7)
+    pts = noisy(project(xyz, (-5.0, 5.0)), 0.05)
+    axis, sig = tilt_axis_sigma(pts[:, 0], pts[:, 1], n_boot=100)
+    assert 0 < sig < 2.0
+    assert abs(axis - 90.0) < 4 * sig and not axis_is_significant(axis, sig)
+    a = np.deg2rad(3.0)  # scan rotation: the tilt axis at 93° in both views
+    r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    rot = pts @ r.T
+    axis_r, sig_r = tilt_axis_sigma(rot[:, 0], rot[:, 1], n_boot=100)
+    assert abs(axis_r - 93.0) < 4 * sig_r and axis_is_significant(axis_r, sig_r)
+
+
+def test_estimated_tilt_differences_agree_with_the_x_scales():
+    xyz = make_scene(n=600, seed=8)
+    tilts = np.array([-5.0, 0.0, 5.0])
+    pts = noisy(project(xyz, tilts), 0.02)
+    est = estimate_tilts(pts, S, n_boot=50, progress=False)
+    d_err = np.abs(np.diff(est.tilt_deg) - np.diff(tilts))
+    assert d_err.max() <= 0.05, d_err
+    assert np.all(est.tilt_sigma_deg > 0)
+    chk = check_tilts(pts, est.tilt_deg, sigma_px=0.02, ref_view=1)
+    assert chk.consistent and abs(chk.pretilt_deg) < 1.0

@@ -1,0 +1,316 @@
+"""Do the given tilts agree with the views? x-scales, parallax relief, tilt-axis significance.
+
+Matches are ``pts`` : ``(N, V, 2)`` arrays (point, view, ``(x, y)`` pixels) as in
+:mod:`semlab.reconstruct`. A flat surface ``z = a x + b y + c`` seen at tilt ``θ_i`` about the
+image y axis maps between views by an affine map whose x-scale is::
+
+    A_j = ∂u_j/∂u_ref = cos(θ_j + β) / cos(θ_ref + β),        tan β = -a
+
+(``β`` the tilt of the surface on the stage, a few degrees for a mounted sample), so the
+x-scales of the dominant flat surface measure the tilts; and the points off that surface
+show a parallax ``Δu_j = z (sin θ_j - A_j sin θ_ref) / s`` that the tilts predict.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import GeometryError
+from .plane import ransac_plane
+
+__all__ = [
+    "TiltCheck",
+    "MAX_PRETILT_DEG",
+    "x_scales",
+    "check_tilts",
+    "tilt_axis_sigma",
+    "axis_is_significant",
+]
+
+#: The largest tilt of the sample surface on the stage that is taken as plausible.
+MAX_PRETILT_DEG = 10.0
+#: Residual parallax below this (pixels RMS) between two views means the same image twice.
+IDENTICAL_PX = 1e-3
+
+
+def x_scales(pts, ref_view=0, sigma_px=None, region=None, k_sigma=3.0, seed=0):
+    """x-scale of the affine map of the dominant flat surface from ``ref_view`` to each view.
+
+    For each view j, ``u_j = A_j u_ref + B_j v_ref + C_j`` is a plane in ``(u_ref, v_ref,
+    u_j)``: its dominant plane (:func:`semlab.plane.ransac_plane`, threshold ``k_sigma``
+    times ``sqrt(2) σ`` of the matches, or from the points) gives ``A_j``; the 1σ of
+    ``A_j`` is the least-squares one with the inliers' residual variance.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+    ref_view : int
+    sigma_px : None, float or (N,) array_like
+        1σ matching error of an x coordinate, pixels.
+    region : (N,) bool array, optional
+        Only these points (e.g. a reference region) are used.
+    k_sigma, seed
+        RANSAC threshold and seed.
+
+    Returns
+    -------
+    dict
+        ``A`` (V,), ``A_sigma`` (V,), ``inliers`` (N,) bool (in every view),
+        ``residual_px`` (V,) RMS of the inliers, ``map`` (V, 3) ``(A, B, C)``
+        (``A = 1``, sigma 0 for the reference view).
+    """
+    p = np.asarray(pts, float)
+    if p.ndim != 3 or p.shape[2] != 2 or p.shape[1] < 2:
+        raise GeometryError(f"pts must be an (N, V, 2) array with V >= 2, got {p.shape}")
+    n, v = p.shape[:2]
+    use = np.ones(n, bool) if region is None else np.asarray(region, bool)
+    if use.sum() < 6:
+        raise GeometryError(f"only {int(use.sum())} points to measure the x-scale; need 6")
+    sig = None if sigma_px is None else np.sqrt(2.0) * np.broadcast_to(
+        np.asarray(sigma_px, float), (n,))[use]
+    A, As, res = np.ones(v), np.zeros(v), np.zeros(v)
+    maps = np.tile([1.0, 0.0, 0.0], (v, 1))
+    inl = np.ones(int(use.sum()), bool)
+    r = int(ref_view) % v
+    for j in range(v):
+        if j == r:
+            continue
+        q = np.column_stack([p[use, r, 0], p[use, r, 1], p[use, j, 0]])
+        plane, m, _ = ransac_plane(q, sig, k_sigma=k_sigma, seed=seed, min_inliers=6)
+        inl &= m
+        d = np.column_stack([q[m, 0], q[m, 1], np.ones(m.sum())])
+        e = q[m, 2] - d @ plane
+        dof = max(m.sum() - 3, 1)
+        cov = np.linalg.pinv(d.T @ d) * (e @ e) / dof
+        A[j], As[j], res[j] = plane[0], np.sqrt(cov[0, 0]), np.sqrt(np.mean(e ** 2))
+        maps[j] = plane
+    full = np.zeros(n, bool)
+    full[np.flatnonzero(use)[inl]] = True
+    return {"A": A, "A_sigma": As, "inliers": full, "residual_px": res, "map": maps}
+
+
+def _predicted_scale(tilt_rad, ref, beta):
+    return np.cos(tilt_rad + beta) / np.cos(tilt_rad[ref] + beta)
+
+
+@dataclass
+class TiltCheck:
+    """Result of :func:`check_tilts`.
+
+    Attributes
+    ----------
+    tilt_deg : (V,) array
+        The tilts checked.
+    x_scale, x_scale_sigma : (V,) arrays
+        Measured x-scales of the flat surface relative to the reference view, and 1σ.
+    predicted_x_scale : (V,) array
+        ``cos(θ_j + β) / cos(θ_ref + β)`` at the fitted surface tilt ``β``.
+    pretilt_deg : float
+        The tilt ``β`` of the flat surface on the stage implied by the tilts and x-scales.
+    consistent : bool
+        ``|β| <= max_pretilt_deg`` and every x-scale within ``k`` σ (and the model
+        tolerance) of its prediction.
+    suggested_tilt_deg : (V,) array
+        Tilts that explain the x-scales with a level surface (``β = 0``) and the reference
+        view's tilt kept: ``θ_j = ±acos(A_j cos θ_ref)``, the sign of the given order.
+    parallax_rms_px : (V,) array
+        RMS x-parallax of all points relative to the flat surface's map.
+    noise_px : (V,) array
+        The RMS that matching noise alone would give.
+    relief_detected : bool
+        Parallax above the noise in some view (the surface is not flat).
+    detection_limit_um : float
+        Smallest height (3σ) the tilts would show, µm (pixels without a pixel size).
+    message : str
+    """
+
+    tilt_deg: np.ndarray
+    x_scale: np.ndarray
+    x_scale_sigma: np.ndarray
+    predicted_x_scale: np.ndarray
+    pretilt_deg: float
+    consistent: bool
+    suggested_tilt_deg: np.ndarray
+    parallax_rms_px: np.ndarray
+    noise_px: np.ndarray
+    relief_detected: bool
+    detection_limit_um: float
+    message: str = ""
+
+    def to_dict(self):
+        """JSON-ready record for ``calibration.json``."""
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                for k, v in self.__dict__.items()}
+
+
+def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_size_um=None,
+                max_pretilt_deg=MAX_PRETILT_DEG, k=5.0, scale_tol=2e-3, strict=True,
+                where="experiment.toml"):
+    """Check given stage tilts against the views' x-scales and parallax.
+
+    1. x-scales ``A_j`` of the dominant flat surface (:func:`x_scales`) against
+       ``cos(θ_j + β)/cos(θ_ref + β)``, with the surface tilt ``β`` fitted within
+       ``±max_pretilt_deg``: a contradiction (e.g. ``[-5, 85]`` on ±5° views, which
+       would need ``β ≈ -40°``) is refused, naming ``tilt_deg``, the measured x-scales and
+       the tilts that fit them (``suggested_tilt_deg``).
+    2. Parallax relief: the x-parallax of all points relative to the flat map, against
+       what matching noise gives. Two views with different tilts but no parallax at all
+       (``< IDENTICAL_PX``, the same image twice) are refused; parallax at the noise level
+       is a flat sample, reported with the detection limit ``3 σ_z``.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+    tilt_deg : (V,) array_like
+    sigma_px : None, float or (N,) array_like
+        1σ matching error, pixels (None: from the flat surface's residuals).
+    ref_view : int
+    region : (N,) bool array, optional
+        Points of the reference region (the flat surface).
+    pixel_size_um : float, optional
+        For ``detection_limit_um``.
+    max_pretilt_deg : float
+    k : float
+        Allowed deviation of an x-scale in its σ.
+    scale_tol : float
+        Model tolerance added in quadrature to the x-scale σ (the flat surface is not
+        exactly flat, and the views not exactly parallel projections).
+    strict : bool
+        Raise on a contradiction (else only ``consistent = False`` and the message).
+    where : str
+        Named in the messages (the experiment file).
+
+    Returns
+    -------
+    TiltCheck
+
+    Raises
+    ------
+    GeometryError
+        With ``strict``: tilts contradicted by the x-scales, or identical views at
+        different tilts.
+    """
+    p = np.asarray(pts, float)
+    t = np.asarray(tilt_deg, float).ravel()
+    v = p.shape[1]
+    if t.size != v:
+        raise GeometryError(f"{where}: tilt_deg has {t.size} values but there are {v} views")
+    r = int(ref_view) % v
+    xs = x_scales(p, r, sigma_px, region)
+    A, As = xs["A"], np.hypot(xs["A_sigma"], scale_tol)
+    As[r] = 1.0
+    th = np.deg2rad(t)
+    betas = np.deg2rad(np.linspace(-89.0, 89.0, 3561))
+    pred = np.array([_predicted_scale(th, r, b) for b in betas])   # (B, V)
+    chi = np.sum(((A - pred) / As) ** 2, axis=1)
+    chi[~np.all(np.isfinite(pred), axis=1)] = np.inf
+    inside = np.abs(betas) <= np.deg2rad(max_pretilt_deg)
+    b_all = betas[np.argmin(chi)]
+    b_in = betas[inside][np.argmin(chi[inside])]
+    pred_in = _predicted_scale(th, r, b_in)
+    dev = np.abs(A - pred_in) / As
+    # tilts explaining the x-scales on a level surface, the given order kept
+    c = np.clip(A * np.cos(th[r]), -1.0, 1.0)
+    sign = np.where(t >= t[r], 1.0, -1.0)
+    sugg = np.rad2deg(sign * np.arccos(c))
+    sugg[r] = t[r]
+    ok_scale = bool(np.all(dev <= k))
+    # parallax relief relative to the flat map, all points
+    u_pred = xs["map"][:, 0] * p[:, r, :1] + xs["map"][:, 1] * p[:, r, 1:] + xs["map"][:, 2]
+    par = p[:, :, 0] - u_pred                                        # (N, V)
+    par_rms = np.sqrt(np.mean(par ** 2, axis=0))
+    if sigma_px is None:
+        noise = xs["residual_px"].copy()
+    else:
+        noise = np.full(v, np.sqrt(2.0) * float(np.sqrt(np.mean(np.square(sigma_px)))))
+    noise[r] = 0.0
+    others = np.arange(v) != r
+    relief = bool(np.any(par_rms[others] > 1.5 * np.maximum(noise[others], IDENTICAL_PX)))
+    dsin = np.abs(np.sin(th - th[r]))
+    s = 1.0 if pixel_size_um is None else float(pixel_size_um)
+    with np.errstate(divide="ignore"):
+        lim = 3 * np.sqrt(np.maximum(noise, IDENTICAL_PX) ** 2) * s / dsin
+    det_lim = float(np.min(lim[others]))
+    msgs = []
+    same = [j for j in range(v) if j != r and abs(t[j] - t[r]) > 1e-6
+            and par_rms[j] < IDENTICAL_PX and xs["residual_px"][j] < IDENTICAL_PX]
+    if same:
+        msgs.append(
+            f"{where}: tilt_deg = {t.tolist()} says views {same} are tilted by "
+            f"{[round(float(t[j] - t[r]), 3) for j in same]}° from view {r}, but they show no "
+            f"parallax at all against it (RMS {float(np.max(par_rms[same])):.2g} px): the same "
+            "image twice? Check [stereo] views")
+    if not ok_scale:
+        ja = int(np.argmax(dev))
+        msgs.append(
+            f"{where}: tilt_deg = {t.tolist()} contradicts the views: the flat surface's "
+            f"x-scale from view {r} to view {ja} is measured {A[ja]:.4f} ± {xs['A_sigma'][ja]:.1g}"
+            f" but these tilts predict {pred_in[ja]:.4f} (cos θ_j / cos θ_ref, surface tilted "
+            f"by up to {max_pretilt_deg:g}° on the stage; they would need "
+            f"{np.rad2deg(b_all):.1f}°). Tilts that fit the views: tilt_deg = "
+            f"{[round(float(x), 2) for x in sugg]} (or leave tilt_deg out with 3+ views to "
+            "estimate them)")
+    res = TiltCheck(tilt_deg=t, x_scale=A, x_scale_sigma=xs["A_sigma"], predicted_x_scale=pred_in,
+                    pretilt_deg=float(np.rad2deg(b_in)), consistent=ok_scale and not same,
+                    suggested_tilt_deg=sugg, parallax_rms_px=par_rms, noise_px=noise,
+                    relief_detected=relief, detection_limit_um=det_lim, message="; ".join(msgs))
+    if not relief and not same:
+        res.message = (f"no parallax relief above the matching noise: the surface is flat "
+                       f"within {det_lim:.3g} {'µm' if pixel_size_um else 'px'} (3σ)")
+    if strict and msgs:
+        raise GeometryError("; ".join(msgs))
+    return res
+
+
+def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):
+    """Tilt-axis direction in view 0 from the affine F, with its 1σ.
+
+    The σ is the spread over random half-samples of the points (without replacement, since
+    the affine F refuses duplicate points): a delete-N/2 jackknife, whose variance equals
+    that of the estimate from all N points (Shao & Wu 1989).
+
+    Parameters
+    ----------
+    x0, x1 : (N, 2) arrays of (x, y) pixels
+    n_boot : int
+        Half-samples.
+    seed : int
+
+    Returns
+    -------
+    axis_deg : float
+        In [0, 180), from +x toward +y (90 = image y), from all points
+        (:func:`semlab.epipolar.affine_tilt_axis`).
+    sigma_deg : float
+        1σ over the resamples (NaN with fewer than 2 successful resamples).
+    """
+    from .epipolar import affine_tilt_axis, fundamental_affine
+
+    a, b = np.asarray(x0, float), np.asarray(x1, float)
+    axis = float(affine_tilt_axis(fundamental_affine(a, b))[0][0])
+    rng = np.random.default_rng(seed)
+    boots = []
+    for _ in range(int(n_boot)):  # half-samples: their variance is the full sample's
+        idx = rng.choice(len(a), len(a) // 2, replace=False)
+        try:
+            boots.append(float(affine_tilt_axis(fundamental_affine(a[idx], b[idx]))[0][0]))
+        except GeometryError:
+            continue
+    if len(boots) < 2:
+        return axis, float("nan")
+    d = (np.array(boots) - axis + 90.0) % 180.0 - 90.0   # axes are defined modulo 180°
+    return axis, float(np.std(d, ddof=1))
+
+
+def axis_is_significant(axis_deg, sigma_deg, k=3.0, tolerance_deg=0.0):
+    """Whether a tilt axis is significantly off the image y axis (90°).
+
+    True when its deviation from 90° (modulo 180°) exceeds both ``k`` σ and
+    ``tolerance_deg``; False when σ is unknown (NaN).
+    """
+    dev = abs((float(axis_deg) - 90.0 + 90.0) % 180.0 - 90.0)
+    if not np.isfinite(sigma_deg):
+        return False
+    return bool(dev > k * float(sigma_deg) and dev > tolerance_deg)
