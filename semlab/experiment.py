@@ -11,6 +11,8 @@ An experiment folder looks like::
       camera = "affine"             # or "perspective"; default affine
       correspondences = "annotations/correspondences.csv" # optional
       lines = "annotations/lines.json"                    # optional
+      reference_region = [x0, y0, x1, y1]  # optional, view-0 px; or [[x, y], ...] or "mask.png"
+      reference_points = [[x, y], [x, y], [x, y]]         # optional three-point levelling
       [series]
       frames = ["series/f00.tif", ...]   # or a glob; chronological, earliest first
       cycles = [...]                # optional, one per frame
@@ -45,7 +47,8 @@ else:  # pragma: no cover - Python 3.10
 
 TOML_NAME = "experiment.toml"
 TOP_KEYS = {"name", "description", "pixel_size_um", "stereo", "series"}
-STEREO_KEYS = {"views", "tilt_deg", "camera", "correspondences", "lines"}
+STEREO_KEYS = {"views", "tilt_deg", "camera", "correspondences", "lines", "reference_region",
+               "reference_points"}
 SERIES_KEYS = {"frames", "cycles", "minutes"}
 CAMERAS = ("affine", "perspective")
 #: Relative disagreement between TOML and metadata pixel sizes that is reported.
@@ -79,6 +82,12 @@ class StereoSpec:
     correspondences_path, lines_path : Path or None
     shape : (H, W)
         Image-area size shared by all views.
+    reference_region : list or Path or None
+        Where heights are measured from (view-0 pixels): a rectangle ``[x0, y0, x1, y1]``,
+        a polygon ``[[x, y], ...]`` or a mask image path; None: the dominant flat surface
+        (see :func:`semlab.surface.reference_surface`).
+    reference_points : (3, 2) list or None
+        Three view-0 pixels ``[x, y]`` the reference plane goes through.
     """
 
     view_paths: list
@@ -88,6 +97,8 @@ class StereoSpec:
     correspondences_path: Path | None = None
     lines_path: Path | None = None
     shape: tuple = (0, 0)
+    reference_region: object = None
+    reference_points: list | None = None
 
 
 @dataclass
@@ -259,6 +270,43 @@ def _number_list(value, key, toml_path, n=None):
         raise ExperimentError(f"{toml_path}: {key} has {len(arr)} values but there are {n} "
                               f"{'views' if 'stereo' in key else 'frames'}; give one per image")
     return arr
+
+
+def _reference_region(st, root, toml_path, shape):
+    """``[stereo] reference_region`` and ``reference_points``, checked (view-0 pixels)."""
+    region, points = st.get("reference_region"), st.get("reference_points")
+    key = "[stereo] reference_region"
+    if region is not None and points is not None:
+        raise ExperimentError(f"{toml_path}: give {key} or [stereo] reference_points, not both")
+    h, w = shape
+    if isinstance(region, str):
+        region = _resolve(root, region, key, toml_path)
+    elif region is not None:
+        try:
+            arr = np.asarray(region, float)
+        except (TypeError, ValueError):
+            arr = np.zeros((0,))
+        rect = arr.shape == (4,) and arr[2] > arr[0] and arr[3] > arr[1]
+        poly = arr.ndim == 2 and arr.shape[1] == 2 and arr.shape[0] >= 3
+        if not (rect or poly) or not np.all(np.isfinite(arr)):
+            raise ExperimentError(
+                f"{toml_path}: {key} = {region!r} is neither a rectangle [x0, y0, x1, y1] (x1 > "
+                "x0, y1 > y0) nor a polygon [[x, y], ...] of 3+ vertices in view-0 pixels, nor "
+                "a mask image path")
+        region = arr.tolist()
+    if points is not None:
+        try:
+            arr = np.asarray(points, float)
+        except (TypeError, ValueError):
+            arr = np.zeros((0,))
+        if arr.shape != (3, 2) or not np.all(np.isfinite(arr)):
+            raise ExperimentError(f"{toml_path}: [stereo] reference_points = {points!r} must be "
+                                  "three view-0 pixels [[x, y], [x, y], [x, y]]")
+        if np.any(arr < -0.5) or np.any(arr[:, 0] > w - 0.5) or np.any(arr[:, 1] > h - 0.5):
+            raise ExperimentError(f"{toml_path}: [stereo] reference_points {arr.tolist()} are "
+                                  f"outside the {w}×{h} px views")
+        points = arr.tolist()
+    return region, points
 
 
 def _image_header(path):
@@ -482,6 +530,8 @@ def load(path) -> Experiment:
             correspondences_path=None if corr is None else _resolve(root, corr, "[stereo] correspondences", toml_path),
             lines_path=None if lines is None else _resolve(root, lines, "[stereo] lines", toml_path),
             shape=headers[0][0])
+        stereo.reference_region, stereo.reference_points = _reference_region(
+            st, root, toml_path, headers[0][0])
 
     series = None
     if "series" in cfg:

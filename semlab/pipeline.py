@@ -29,6 +29,8 @@ from .errors import GeometryError, SemlabError, SemlabWarning
 
 #: Tilt-axis deviations from the image y axis smaller than this are treated as zero.
 AXIS_TOLERANCE_DEG = 0.2
+#: ...and so are larger ones within this many σ of their (half-sample) uncertainty.
+AXIS_SIGNIFICANCE = 3.0
 #: 1σ error assumed for hand clicks that were not refined (pixels).
 RAW_CLICK_SIGMA_PX = 0.5
 #: Dense strain grid: Gaussian pre-smoothing of its IC-GN (removes most of the interpolation
@@ -280,7 +282,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     -------
     StereoResult
     """
-    from . import reconstruct, surface
+    from . import reconstruct, surface, tiltcheck
 
     if exp.stereo is None:
         raise SemlabError(f"{exp.toml_path}: no [stereo] table, so no heights to compute")
@@ -302,15 +304,26 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     lines_cal = None
     if lines is not None:
         calib["vanishing"], lines_cal = vanishing_summary(lines)
-    axis = float(epi["pairs"][0]["tilt_axis_deg"][0])
-    if abs(((axis - 90.0 + 90.0) % 180.0) - 90.0) < AXIS_TOLERANCE_DEG:
-        axis_used = 90.0
-    else:
+    axis, axis_sigma = float(epi["pairs"][0]["tilt_axis_deg"][0]), float("nan")
+    if epi["pairs"][0].get("F_affine") is not None:
+        axis, axis_sigma = tiltcheck.tilt_axis_sigma(pts[:, 0], pts[:, 1], seed=seed)
+    calib["tilt_axis_measured_deg"], calib["tilt_axis_sigma_deg"] = axis, axis_sigma
+    if tiltcheck.axis_is_significant(axis, axis_sigma, AXIS_SIGNIFICANCE, AXIS_TOLERANCE_DEG):
         axis_used = axis
-        notes.append(f"tilt axis at {axis:.2f}° in the image (not along y): coordinates rotated")
+        notes.append(f"tilt axis at {axis:.2f} ± {axis_sigma:.2f}° in the image (not along y): "
+                     "coordinates rotated")
+    else:
+        axis_used = 90.0
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
     # raw clicks carry no matching estimate: assume the typical hand-click error
     sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
+    if exp.stereo.camera == "affine":  # given tilts must agree with the views (refused if not)
+        chk = tiltcheck.check_tilts(pts, tilt, sigma_px, pixel_size_um=exp.pixel_size_um,
+                                    strict=tilt_source in ("experiment", "metadata"),
+                                    where=f"{exp.toml_path} ({tilt_source} tilts)")
+        calib["tilt_check"] = chk.to_dict()
+        if chk.message:
+            notes.append(chk.message)
     if exp.stereo.camera == "perspective":
         if lines_cal is None:
             raise GeometryError(
@@ -336,16 +349,19 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
                                                 tilt_axis_deg=axis_used).xyz_um
         z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
-        if n_boot:
-            sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
-                                                 seed=seed, tilt_axis_deg=axis_used,
-                                                 progress=progress)
-            z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
-    plane = surface.fit_reference_plane(xyz_3d)
-    z = surface.heights_above_plane(xyz_3d, plane)
+    ref = surface.reference_surface(xyz_3d, z_err, xy_px=pts[:, 0], seed=seed,
+                                    region=exp.stereo.reference_region,
+                                    three_points_px=exp.stereo.reference_points)
+    if exp.stereo.camera != "perspective" and n_boot:
+        sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
+                                             seed=seed, tilt_axis_deg=axis_used,
+                                             progress=progress, reference=ref)
+        z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
+    z = ref.heights(xyz_3d)
     xyz = np.column_stack([xyz_3d[:, :2], z])
     calib.update(tilt_deg=tilt, tilt_source=tilt_source, tilt_sigma_deg=tilt_sigma,
-                 tilt_axis_deg=axis_used, reference_plane=np.asarray(plane))
+                 tilt_axis_deg=axis_used, reference_plane=np.asarray(ref.plane),
+                 reference_surface=ref.to_dict())
     n = len(pts)
     clicked = idx >= 0
     point_id = np.empty(n, int)

@@ -111,7 +111,8 @@ class ReferenceSurface:
         ``(a, b, c)`` of ``z = a x + b y + c`` (µm, in the frame of ``xyz_um``).
     method : str
         ``"dominant_plane"`` (RANSAC over all points), ``"region"`` (robust fit of the points
-        in a named region) or ``"three_points"`` (plane through three picked points).
+        in a named region), ``"three_points"`` (plane through three picked points) or
+        ``"robust_all"`` (no flat set of 10+ points: the robust plane of all points).
     inliers : (N,) bool array
         The points that define the plane.
     residual_rms_um : float
@@ -153,6 +154,8 @@ class ReferenceSurface:
         idx = np.arange(len(p)) if index is None else np.asarray(index)
         if self.method == "three_points":
             return plane_through_points(np.array([p[nb].mean(axis=0) for nb in self.neighbours]))
+        if self.method == "robust_all":
+            return fit_reference_plane(p[idx])
         sel = idx[self.inliers[idx]]
         return fit_reference_plane(p[sel], robust=self.method == "region")
 
@@ -240,10 +243,18 @@ def reference_surface(xyz_um, z_sigma_um=None, xy_px=None, region=None, three_po
         plane = fit_reference_plane(p[inl])
         method, detail = "region", _describe_region(region)
     else:
-        plane, inl, used = ransac_plane(p, sig, k_sigma=k_sigma, n_iter=n_iter, seed=seed)
-        threshold = float(k_sigma * np.median(used))
-        method = "dominant_plane"
-        detail = {"k_sigma": k_sigma, "sigma_from": "points" if sig is None else "given"}
+        try:
+            plane, inl, used = ransac_plane(p, sig, k_sigma=k_sigma, n_iter=n_iter, seed=seed,
+                                            min_inliers=min(10, n))
+            threshold = float(k_sigma * np.median(used))
+            method = "dominant_plane"
+            detail = {"k_sigma": k_sigma, "sigma_from": "points" if sig is None else "given"}
+        except GeometryError as exc:  # no flat set: the robust plane of everything, said so
+            plane = fit_reference_plane(p)
+            inl = np.abs(heights_above_plane(p, plane)) <= k_sigma * (
+                np.median(sig) if sig is not None else np.std(heights_above_plane(p, plane)))
+            inl = inl if inl.sum() else np.ones(n, bool)
+            method, detail = "robust_all", {"reason": str(exc)}
     h = heights_above_plane(p[inl], plane)
     q5, q95 = np.percentile(h, [5, 95])
     return ReferenceSurface(

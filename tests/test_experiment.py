@@ -225,3 +225,30 @@ def test_series_only_and_stereo_only(small_experiment, tmp_path):
     with pytest.raises(ExperimentError, match="no \\[stereo\\]"):
         exp.views()
     assert exp.correspondences() is None
+
+
+def test_reference_region_and_points_keys(small_experiment):
+    import re
+
+
+    toml = small_experiment / "experiment.toml"
+    base = toml.read_text()
+
+    def load_with(line):
+        toml.write_text(re.sub(r"\[stereo\]\n", f"[stereo]\n{line}\n", base, count=1))
+        return load(toml)
+
+    assert load(toml).stereo.reference_region is None
+    assert load_with("reference_region = [1, 2, 30, 40]").stereo.reference_region == [1, 2, 30, 40]
+    poly = load_with("reference_region = [[0, 0], [50, 0], [0, 40]]").stereo.reference_region
+    assert poly == [[0, 0], [50, 0], [0, 40]]
+    pts = load_with("reference_points = [[1, 1], [90, 5], [10, 80]]").stereo.reference_points
+    assert pts == [[1, 1], [90, 5], [10, 80]]
+    with pytest.raises(ExperimentError, match="reference_region.*rectangle"):
+        load_with("reference_region = [30, 2, 1, 40]")
+    with pytest.raises(ExperimentError, match="reference_region.*not found"):
+        load_with('reference_region = "nomask.png"')
+    with pytest.raises(ExperimentError, match="reference_points.*outside"):
+        load_with("reference_points = [[1, 1], [900, 5], [10, 80]]")
+    with pytest.raises(ExperimentError, match="not both"):
+        load_with("reference_points = [[1, 1], [90, 5], [10, 80]]\nreference_region = [1, 2, 3, 4]")

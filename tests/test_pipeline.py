@@ -129,3 +129,46 @@ def test_perspective_height_errors_follow_the_click_noise(tmp_path):
     pred = np.sqrt(np.mean(res.z_err_um ** 2)) * 0.1 / pipeline.RAW_CLICK_SIGMA_PX
     assert len(corr.pts) == len(res.z_um)
     assert 0.5 < err / (np.sqrt(2) * pred) < 2.0
+
+
+def _set_stereo_keys(exp, **keys):
+    """Rewrite experiment.toml with [stereo] keys replaced or added (TOML literals)."""
+    import re
+
+    text = exp.toml_path.read_text()
+    for k, v in keys.items():
+        text = re.sub(rf"(?m)^{k} = .*\n", "", text)
+        text = text.replace("[stereo]\n", f"[stereo]\n{k} = {v}\n", 1)
+    exp.toml_path.write_text(text)
+    return experiment.load(exp.toml_path)
+
+
+def test_contradicting_tilts_refused_with_the_estimate(tmp_path):
+    exp = _make(tmp_path, seed=4, size=(160, 200), write_block=False, n_clicks=0)
+    with pytest.warns(UserWarning, match="overrides the image metadata 5"):
+        exp = _set_stereo_keys(exp, tilt_deg="[-5.0, 85.0]")
+    with pytest.raises(GeometryError, match=r"tilt_deg = \[-5.0, 85.0\] contradicts") as e:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+    import re
+
+    assert "experiment.toml" in str(e.value)
+    sugg = re.search(r"fit the views: tilt_deg = \[-5.0, ([0-9.]+)\]", str(e.value))
+    assert sugg and abs(float(sugg.group(1)) - 5.0) < 1.0  # the truth is ±5°
+
+
+def test_reference_region_recorded_in_calibration(tmp_path):
+    exp = _make(tmp_path, seed=5, size=(160, 200), write_block=False, n_clicks=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+        exp_r = _set_stereo_keys(exp, reference_region="[0, 0, 100, 160]")
+        res_r = pipeline.run_stereo(exp_r, method="auto", n_boot=0, progress=False)
+    rs = res.calibration["reference_surface"]
+    assert rs["method"] == "dominant_plane" and rs["n_inliers"] >= 10
+    assert res.calibration["tilt_check"]["consistent"]
+    assert "tilt_axis_sigma_deg" in res.calibration  # NaN here: too little relief for F
+    rr = res_r.calibration["reference_surface"]
+    assert rr["method"] == "region" and rr["rectangle_px"] == [0.0, 0.0, 100.0, 160.0]
+    assert rr["n_inliers"] == int(np.sum(res_r.pts[:, 0, 0] <= 100))
