@@ -267,6 +267,46 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True):
     raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
 
 
+def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, seed=0):
+    """Heights at known (or estimated) tilts above the experiment's reference surface.
+
+    Heights (:func:`semlab.reconstruct.heights_from_tilts`), their matching σ, the reference
+    surface (:func:`semlab.surface.reference_surface`, from ``[stereo] reference_region`` /
+    ``reference_points`` or the dominant flat surface); estimated tilts (whose common
+    rotation is a convention) are turned so that the reference surface is level
+    (:func:`semlab.tiltcheck.level_tilts`); then the tilts are checked against the
+    reference surface's x-scales (:func:`semlab.tiltcheck.check_tilts`), refusing given
+    tilts (experiment.toml or metadata) that the views contradict.
+
+    Returns
+    -------
+    xyz_um (N, 3), z_err_um (N,), ReferenceSurface, tilt_deg (V,), TiltCheck
+    """
+    from . import reconstruct, surface, tiltcheck
+
+    st = exp.stereo
+    for _ in range(2 if tilt_source in ("estimated", "vanishing_points") else 1):
+        xyz = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
+                                             tilt_axis_deg=tilt_axis_deg).xyz_um
+        z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
+        ref = surface.reference_surface(xyz, z_err, xy_px=pts[:, 0], seed=seed,
+                                        region=st.reference_region,
+                                        three_points_px=st.reference_points)
+        if tilt_source in ("estimated", "vanishing_points"):
+            tilt = tiltcheck.level_tilts(tilt, ref.plane)
+    if tilt_source in ("estimated", "vanishing_points"):
+        xyz = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
+                                             tilt_axis_deg=tilt_axis_deg).xyz_um
+        ref = surface.reference_surface(xyz, z_err, xy_px=pts[:, 0], seed=seed,
+                                        region=st.reference_region,
+                                        three_points_px=st.reference_points)
+    chk = tiltcheck.check_tilts(pts, tilt, sigma_px, region=ref.inliers,
+                                pixel_size_um=exp.pixel_size_um,
+                                strict=tilt_source in ("experiment", "metadata"),
+                                where=f"{exp.toml_path} ({tilt_source} tilts)")
+    return xyz, z_err, ref, np.asarray(tilt, float), chk
+
+
 def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     """Heights of the end-state surface from the experiment's views.
 
@@ -317,13 +357,6 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
     # raw clicks carry no matching estimate: assume the typical hand-click error
     sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
-    if exp.stereo.camera == "affine":  # given tilts must agree with the views (refused if not)
-        chk = tiltcheck.check_tilts(pts, tilt, sigma_px, pixel_size_um=exp.pixel_size_um,
-                                    strict=tilt_source in ("experiment", "metadata"),
-                                    where=f"{exp.toml_path} ({tilt_source} tilts)")
-        calib["tilt_check"] = chk.to_dict()
-        if chk.message:
-            notes.append(chk.message)
     if exp.stereo.camera == "perspective":
         if lines_cal is None:
             raise GeometryError(
@@ -345,13 +378,14 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         xyz_3d = xyz_p
         z_err = reconstruct.perspective_height_sigma(lines_cal.K, R_p, t_p, pts[:, 0],
                                                      pts[:, 1], sigma_px)
+        ref = surface.reference_surface(xyz_3d, z_err, xy_px=pts[:, 0], seed=seed,
+                                        region=exp.stereo.reference_region,
+                                        three_points_px=exp.stereo.reference_points)
     else:
-        xyz_3d = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
-                                                tilt_axis_deg=axis_used).xyz_um
-        z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
-    ref = surface.reference_surface(xyz_3d, z_err, xy_px=pts[:, 0], seed=seed,
-                                    region=exp.stereo.reference_region,
-                                    three_points_px=exp.stereo.reference_points)
+        xyz_3d, z_err, ref, tilt, chk = affine_heights(exp, pts, tilt, tilt_source, sigma_px,
+                                                       axis_used, seed)
+        calib["tilt_check"] = chk.to_dict()
+        notes += [chk.message] if chk.message else []
     if exp.stereo.camera != "perspective" and n_boot:
         sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
                                              seed=seed, tilt_axis_deg=axis_used,

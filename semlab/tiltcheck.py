@@ -27,6 +27,7 @@ __all__ = [
     "check_tilts",
     "tilt_axis_sigma",
     "axis_is_significant",
+    "level_tilts",
 ]
 
 #: The largest tilt of the sample surface on the stage that is taken as plausible.
@@ -314,3 +315,24 @@ def axis_is_significant(axis_deg, sigma_deg, k=3.0, tolerance_deg=0.0):
     if not np.isfinite(sigma_deg):
         return False
     return bool(dev > k * float(sigma_deg) and dev > tolerance_deg)
+
+
+def level_tilts(tilt_deg, plane):
+    """Tilts turned so that a reference plane becomes level in x.
+
+    A common rotation ``α`` of the material frame about the tilt axis changes every tilt
+    to ``θ - α`` and is unobservable from the images (the absolute-tilt gauge of
+    :func:`semlab.reconstruct.estimate_tilts`): with ``α = atan(a)`` the plane
+    ``z = a x + b y + c`` of heights computed at ``tilt_deg`` has no x slope.
+
+    Parameters
+    ----------
+    tilt_deg : (V,) array_like
+    plane : (3,) array_like
+        ``(a, b, c)``, x and z in the same unit.
+
+    Returns
+    -------
+    (V,) array of tilts, degrees.
+    """
+    return np.asarray(tilt_deg, float) - np.rad2deg(np.arctan(float(np.ravel(plane)[0])))

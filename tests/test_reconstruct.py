@@ -495,3 +495,15 @@ def test_estimated_tilt_differences_agree_with_the_x_scales():
     assert np.all(est.tilt_sigma_deg > 0)
     chk = check_tilts(pts, est.tilt_deg, sigma_px=0.02, ref_view=1)
     assert chk.consistent and abs(chk.pretilt_deg) < 1.0
+
+
+def test_level_tilts_removes_the_common_rotation():
+    from semlab.tiltcheck import level_tilts
+
+    xyz = make_scene(n=300, seed=9, y_slope=0.0)
+    tilts = np.array([-5.0, 0.0, 5.0])
+    pts = project(xyz, tilts)
+    wrong = tilts + 3.0  # the same differences, another absolute tilt
+    plane = fit_reference_plane(heights_from_tilts(pts, wrong, S).xyz_um)
+    assert abs(plane[0]) > 0.05
+    assert np.allclose(level_tilts(wrong, plane), tilts, atol=1e-9)
