@@ -72,6 +72,8 @@ class StereoResult:
         JSON-ready: F matrices, epipoles, vanishing-point K and rotations, tilts.
     method : str
     notes : list of str
+    reference : semlab.surface.ReferenceSurface or None
+        The plane the heights are measured from (method, inliers, residual).
     """
 
     point_id: np.ndarray
@@ -88,6 +90,7 @@ class StereoResult:
     calibration: dict
     method: str
     notes: list = field(default_factory=list)
+    reference: object = None
 
     @property
     def z_um(self):
@@ -410,7 +413,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
     return StereoResult(point_id=point_id.astype(int), pts=pts, kind=kind, crack_id=crack.astype(int),
                         xyz_um=xyz, z_err_um=z_err, sigma_px=sigma_px, tilt_deg=np.asarray(tilt),
                         tilt_source=tilt_source, tilt_sigma_deg=np.asarray(tilt_sigma),
-                        tilt_axis_deg=axis_used, calibration=calib, method=method, notes=notes)
+                        tilt_axis_deg=axis_used, calibration=calib, method=method, notes=notes,
+                        reference=ref)
 
 
 def write_stereo_results(result, out_dir, overwrite=False):

@@ -127,6 +127,41 @@ def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="R
     return ax
 
 
+def show_reference_surface(img, xy_px, z, inliers, ax=None, unit="µm", lim=None,
+                           title="heights above the reference surface"):
+    """View 0 with every point coloured by its height and the reference points outlined.
+
+    Parameters
+    ----------
+    img : (H, W) array
+        View 0.
+    xy_px : (N, 2) array of (x, y) pixels in view 0
+    z : (N,) array
+        Heights above the reference surface (``unit``).
+    inliers : (N,) bool array
+        The points that define the reference plane (``ReferenceSurface.inliers``), outlined
+        in black.
+    lim : float, optional
+        Colour scale ``[-lim, lim]``; default the 95th percentile of ``|z|`` of the inliers
+        times 3 (the reference's own scatter stays pale, relief stands out).
+    """
+    plt = _plt()
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 5))
+    xy = np.asarray(xy_px, float)
+    z = np.asarray(z, float)
+    inl = np.asarray(inliers, bool)
+    show_image(img, ax=ax, title=title)
+    if lim is None:
+        lim = 3 * float(np.percentile(np.abs(z[inl]), 95)) if inl.any() else float(np.ptp(z))
+    sc = ax.scatter(xy[:, 0], xy[:, 1], c=z, s=7, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    ax.scatter(xy[inl, 0], xy[inl, 1], s=9, facecolors="none", edgecolors="k", linewidths=0.3,
+               label=f"reference ({int(inl.sum())} points)")
+    ax.figure.colorbar(sc, ax=ax, label=f"z ({unit})")
+    ax.legend(loc="lower right", fontsize=7)
+    return ax
+
+
 FAMILY_COLOURS = ("tab:red", "tab:green", "tab:blue", "tab:orange", "tab:purple")
 
 

@@ -411,3 +411,20 @@ def test_points3d_csv_string_ids(tmp_path):
     ids = np.array(["p1", "p2", "crack7_a"])
     back = read_points3d_csv(write_points3d_csv(tmp_path / "s.csv", ids, pts, xyz, err))
     assert back["point_id"].tolist() == ids.tolist()
+
+
+def test_show_reference_surface_draws_points_and_reference():
+    import matplotlib.pyplot as plt
+
+    from semlab.plots import show_reference_surface
+
+    pts, h, sub, tilts, s, z_sig = tall_object_on_substrate(seed=5, n=200)
+    xyz = heights_from_tilts(pts, tilts, s).xyz_um
+    ref = reference_surface(xyz, z_sig)
+    img = np.random.default_rng(0).random((1600, 1600))
+    ax = show_reference_surface(img, pts[:, 0], ref.heights(xyz), ref.inliers)
+    points, outlines = ax.collections[:2]
+    assert len(points.get_offsets()) == 200 and len(outlines.get_offsets()) == ref.n_inliers
+    lo, hi = points.get_clim()
+    assert lo == -hi and 0 < hi < 20 * z_sig  # the reference's scatter sets the scale
+    plt.close(ax.figure)

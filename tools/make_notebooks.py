@@ -365,6 +365,20 @@ if res is not None:
     ax = plots.show_height_points(exp.views()[0], res.pts[:, 0], res.z_um, exp.pixel_size_um)
     plots.show_static(ax.figure, dpi=100, fmt="jpeg")
 '''),
+    md("""## The reference surface
+
+Heights are measured from `[stereo] reference_region` (a rectangle, polygon or mask in view
+0), `reference_points` (three-point levelling) or, by default, the dominant flat surface
+(RANSAC with each point's own height σ). Outlined: the points that define it.
+"""),
+    code('''
+if res is not None:
+    rs = res.calibration["reference_surface"]
+    print(f"reference: {rs['method']}, {rs['n_inliers']} of {rs['n_points']} points, residual "
+          f"RMS {rs['residual_rms_um'] * 1000:.1f} nm, 5-95 % spread {rs['spread_5_95_um'] * 1000:.1f} nm")
+    plots.show_reference_surface(exp.views()[0], res.pts[:, 0], res.z_um, res.reference.inliers,
+                                 ax=plt.subplots(figsize=(8, 5.5))[1])
+'''),
     md("## x–z and y–z projections, with 1σ error bars"),
     code('''
 if res is not None:
