@@ -116,6 +116,10 @@ class TiltCheck:
     suggested_tilt_deg : (V,) array
         Tilts that explain the x-scales with a level surface (``β = 0``) and the reference
         view's tilt kept: ``θ_j = ±acos(A_j cos θ_ref)``, the sign of the given order.
+    x_scale_tilt_deg, x_scale_tilt_sigma_deg : (V,) arrays
+        The tilts the x-scales alone give at the fitted ``β`` and the reference view's
+        tilt, ``±acos(A_j cos(θ_ref + β)) - β``, and their 1σ from the x-scales' σ (large
+        where ``θ_j + β`` is near 0, where the cosine is flat): compare with estimated tilts.
     parallax_rms_px : (V,) array
         RMS x-parallax of all points relative to the flat surface's map.
     noise_px : (V,) array
@@ -134,6 +138,8 @@ class TiltCheck:
     pretilt_deg: float
     consistent: bool
     suggested_tilt_deg: np.ndarray
+    x_scale_tilt_deg: np.ndarray
+    x_scale_tilt_sigma_deg: np.ndarray
     parallax_rms_px: np.ndarray
     noise_px: np.ndarray
     relief_detected: bool
@@ -218,6 +224,13 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
     sugg = np.rad2deg(sign * np.arccos(c))
     sugg[r] = t[r]
     ok_scale = bool(np.all(dev <= k))
+    phi_ref = th[r] + b_in
+    cj = np.clip(A * np.cos(phi_ref), -1.0, 1.0)
+    sgn = np.where(th + b_in >= 0, 1.0, -1.0)
+    xs_tilt = np.rad2deg(sgn * np.arccos(cj) - b_in)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xs_sig = np.rad2deg(xs["A_sigma"] * np.cos(phi_ref) / np.sqrt(np.maximum(1 - cj ** 2, 0)))
+    xs_tilt[r], xs_sig[r] = t[r], 0.0
     # parallax relief relative to the flat map, all points
     u_pred = xs["map"][:, 0] * p[:, r, :1] + xs["map"][:, 1] * p[:, r, 1:] + xs["map"][:, 2]
     par = p[:, :, 0] - u_pred                                        # (N, V)
@@ -255,7 +268,8 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
             "estimate them)")
     res = TiltCheck(tilt_deg=t, x_scale=A, x_scale_sigma=xs["A_sigma"], predicted_x_scale=pred_in,
                     pretilt_deg=float(np.rad2deg(b_in)), consistent=ok_scale and not same,
-                    suggested_tilt_deg=sugg, parallax_rms_px=par_rms, noise_px=noise,
+                    suggested_tilt_deg=sugg, x_scale_tilt_deg=xs_tilt,
+                    x_scale_tilt_sigma_deg=xs_sig, parallax_rms_px=par_rms, noise_px=noise,
                     relief_detected=relief, detection_limit_um=det_lim, message="; ".join(msgs))
     if not relief and not same:
         res.message = (f"no parallax relief above the matching noise: the surface is flat "

@@ -495,6 +495,10 @@ def test_estimated_tilt_differences_agree_with_the_x_scales():
     assert np.all(est.tilt_sigma_deg > 0)
     chk = check_tilts(pts, est.tilt_deg, sigma_px=0.02, ref_view=1)
     assert chk.consistent and abs(chk.pretilt_deg) < 1.0
+    # the outer views' tilts from their x-scales alone agree with the estimate within 3σ
+    for j in (0, 2):
+        dev = abs(chk.x_scale_tilt_deg[j] - est.tilt_deg[j])
+        assert dev < 3 * chk.x_scale_tilt_sigma_deg[j] + 0.05, (j, dev)
 
 
 def test_level_tilts_removes_the_common_rotation():
