@@ -110,7 +110,7 @@ class ReferenceSurface:
     plane : (3,) array
         ``(a, b, c)`` of ``z = a x + b y + c`` (µm, in the frame of ``xyz_um``).
     method : str
-        ``"dominant_plane"`` (RANSAC over all points), ``"region"`` (robust fit of the points
+        ``"dominant_plane"`` (RANSAC over all points), ``"region"`` (RANSAC over the points
         in a named region), ``"three_points"`` (plane through three picked points) or
         ``"robust_all"`` (no flat set of 10+ points: the robust plane of all points).
     inliers : (N,) bool array
@@ -122,7 +122,7 @@ class ReferenceSurface:
     sigma_um : float
         Median 1σ height error of the inliers (NaN when no σ was given).
     threshold_um : float
-        RANSAC inlier threshold (median over the points), NaN for the other methods.
+        RANSAC inlier threshold (median over the points), NaN where none was used.
     detail : dict
         JSON-ready description of the choice (region, picked points, k_sigma).
     """
@@ -157,7 +157,7 @@ class ReferenceSurface:
         if self.method == "robust_all":
             return fit_reference_plane(p[idx])
         sel = idx[self.inliers[idx]]
-        return fit_reference_plane(p[sel], robust=self.method == "region")
+        return fit_reference_plane(p[sel], robust=False)
 
     def to_dict(self):
         """JSON-ready record for ``calibration.json``."""
@@ -184,8 +184,10 @@ def reference_surface(xyz_um, z_sigma_um=None, xy_px=None, region=None, three_po
       inlier threshold ``k_sigma`` times each point's own height σ (``z_sigma_um``; None:
       estimated from the points), refitted by weighted least squares on the inliers. A
       tall object, or rough regions covering much of the view, do not tilt it.
-    - ``region``: a robust fit (:func:`semlab.plane.fit_reference_plane`) of the points
-      whose view-0 position lies in the region (:func:`region_mask`).
+    - ``region``: the same dominant plane, among the points whose view-0 position lies in
+      the region (:func:`region_mask`), so that the region's own relief (grooves, pits)
+      is measured rather than levelled away; the robust plane of the region's points
+      (:func:`semlab.plane.fit_reference_plane`) if no 10 of them are coplanar.
     - ``three_points_px``: the plane through three picked view-0 positions (Gwyddion's
       three-point levelling); each picked point's ``(x, y, z)`` is the mean of its
       :data:`THREE_POINT_NEIGHBOURS` nearest matched points.
@@ -236,12 +238,21 @@ def reference_surface(xyz_um, z_sigma_um=None, xy_px=None, region=None, three_po
         method = "three_points"
         detail = {"three_points_px": picks.tolist(), "neighbours": k}
     elif region is not None:
-        inl = region_mask(region, xy_px)
-        if inl.sum() < 3:
-            raise GeometryError(f"only {int(inl.sum())} matched points lie in the reference "
+        inr = region_mask(region, xy_px)
+        if inr.sum() < 3:
+            raise GeometryError(f"only {int(inr.sum())} matched points lie in the reference "
                                 f"region {_describe_region(region)}: it needs 3 or more")
-        plane = fit_reference_plane(p[inl])
         method, detail = "region", _describe_region(region)
+        detail["n_in_region"] = int(inr.sum())
+        try:  # the dominant plane of the region: its own relief (grooves) is not levelled
+            plane, m, used = ransac_plane(p[inr], None if sig is None else sig[inr],
+                                          k_sigma=k_sigma, n_iter=n_iter, seed=seed,
+                                          min_inliers=min(10, int(inr.sum())))
+            threshold = float(k_sigma * np.median(used))
+            inl = np.zeros(n, bool)
+            inl[np.flatnonzero(inr)[m]] = True
+        except GeometryError:  # no flat set in the region: its robust plane
+            plane, inl = fit_reference_plane(p[inr]), inr
     else:
         try:
             plane, inl, used = ransac_plane(p, sig, k_sigma=k_sigma, n_iter=n_iter, seed=seed,
