@@ -3,7 +3,7 @@
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
       (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure)
 
-1. Synthetic: a textured bump 12 µm tall, ``12 (1 - r²/R²)²`` with R = 12.5 µm, off the
+1. Synthetic: a textured bump 6 µm tall, ``6 (1 - r²/R²)²`` with R = 14 µm, off the
    centre of a flat substrate, seen at ±9° at 0.03 µm/px, 1024×768 px (the texture and
    rendering of tests/test_matching.py, DomeScene), matched with
    semlab.matching.auto_match; heights at the known tilts. The substrate (exactly flat
@@ -70,7 +70,7 @@ def spread(z):
 
 def synthetic():
     tilts = (-9.0, 9.0)
-    sc = BumpScene(amp_um=12.0, radius_um=12.5, shape=(768, 1024), margin_px=200, seed=5)
+    sc = BumpScene(amp_um=6.0, radius_um=14.0, shape=(768, 1024), margin_px=200, seed=5)
     ims = [sc.render(tilts[0], seed=1), sc.render(tilts[1], gain=0.8, offset=12, seed=2)]
     t = time.perf_counter()
     m = auto_match(ims, progress=False).only_valid()
@@ -81,7 +81,7 @@ def synthetic():
     xyz = heights_from_tilts(m.pts, tilts, S_UM).xyz_um
     zsig = height_sigma(np.clip(m.sigma_px, 1e-3, None), tilts, S_UM)
     err_sd = float(np.std(xyz[sub, 2] - zt[sub] - np.median(xyz[sub, 2] - zt[sub])))
-    print(f"### Synthetic tall object (12 µm bump on a flat substrate, ±9°)\n\n{len(m.pts)} "
+    print(f"### Synthetic tall object (6 µm bump on a flat substrate, ±9°)\n\n{len(m.pts)} "
           f"matches ({dt:.0f} s), {sub.mean():.0%} on the substrate; median height σ of the "
           f"substrate points {1000 * np.median(zsig[sub]):.2f} nm from the matching σ, "
           f"{1000 * err_sd:.2f} nm actual (SD of their height errors)\n")
