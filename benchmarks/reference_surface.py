@@ -160,8 +160,9 @@ def pollen():
     mask = np.zeros(ims[0].shape, bool)
     yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
     mask[np.hypot(xx - GRAIN_CENTRE[0], yy - GRAIN_CENTRE[1]) > GRAIN_RADIUS] = True
-    print("\n| reference | levelled tilts (°) | inliers (substrate) | plane left across the "
-          "substrate (px, ±1σ) | substrate spread 5–95 % (px) | grain median (px) | tilt check |")
+    print("\n| reference | levelled tilts (°) | inliers | plane left across all substrate "
+          "points, least squares (px over its extent, ±1σ) | substrate spread 5–95 % (px) | "
+          "grain median (px) | tilt check |")
     print("|---|---|---|---|---|---|---|")
     for name, kw in (("substrate mask (reference_region)", {"region": mask}),
                      ("dominant flat surface (default)", {})):
@@ -181,11 +182,14 @@ def pollen():
         ext = np.ptp(q[:, :2], axis=0)
         left = [coef[k] * ext[k] for k in (0, 1)]
         left_sig = [np.sqrt(cov[k, k]) * ext[k] for k in (0, 1)]
+        rob = fit_reference_plane(q)  # robust: less moved by the one-sided grooves
+        left_r = [rob[k] * ext[k] for k in (0, 1)]
         chk = check_tilts(P, tilt, sig_px, region=ref.inliers, strict=False)
         n_sub_in = int(np.sum(ref.inliers & is_sub))
         print(f"| {name} | {np.round(tilt, 2).tolist()} | {ref.n_inliers} ({n_sub_in} of "
               f"{is_sub.sum()} substrate) | x {left[0]:+.2f} ± {left_sig[0]:.2f}, "
-              f"y {left[1]:+.2f} ± {left_sig[1]:.2f} | {spread(z[is_sub]):.1f} | "
+              f"y {left[1]:+.2f} ± {left_sig[1]:.2f} (robust: x {left_r[0]:+.2f}, y "
+              f"{left_r[1]:+.2f}) | {spread(z[is_sub]):.1f} | "
               f"{np.median(z[~is_sub]):.0f} | {'consistent' if chk.consistent else 'REFUSED'},"
               f" surface tilt {chk.pretilt_deg:+.1f}° |")
         if kw:
@@ -211,7 +215,7 @@ def pollen():
         from semlab.plots import show_reference_surface
 
         ax = show_reference_surface(*fig_args, unit="px", lim=8.0, title="pollen_pot1: heights "
-                                    "above the substrate (reference_region = substrate mask)")
+                                    "above the substrate")
         FIGURE.parent.mkdir(parents=True, exist_ok=True)
         ax.figure.savefig(FIGURE, dpi=80, bbox_inches="tight")
         print(f"\nfigure: {FIGURE.relative_to(ROOT)}")
