@@ -155,7 +155,9 @@ def test_contradicting_tilts_refused_with_the_estimate(tmp_path):
 
     assert "experiment.toml" in str(e.value)
     sugg = re.search(r"fit the views: tilt_deg = \[-5.0, ([0-9.]+)\]", str(e.value))
-    assert sugg and abs(float(sugg.group(1)) - 5.0) < 1.0  # the truth is ±5°
+    # the truth is ±5°; at ±5° the x-scale moves by only sin 5° per radian of tilt, so the
+    # scene's own slope (a fraction of a degree) shifts the suggestion by a few degrees
+    assert sugg and abs(float(sugg.group(1)) - 5.0) < 3.0
 
 
 def test_reference_region_recorded_in_calibration(tmp_path):
