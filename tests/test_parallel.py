@@ -110,6 +110,8 @@ def test_pinned_crop_keeps_the_frame_stretch():
     full, _ = normalize_frame(f)
     lo, hi, blank = parallel._stretch(f, "frame 0")
     assert not blank and lo < hi
+    for flat in (np.full((64, 64), 7.0), np.full((64, 64), np.nan)):       # as normalize_frame
+        assert parallel._stretch(flat, "flat")[2] and normalize_frame(flat)[1]
     y0, y1, x0, x1 = 32, 200, 48, 300            # a crop with another intensity histogram
     for side in ("top", "bottom", "left", "right"):
         thick = parallel._strip_thickness((y1 - y0, x1 - x0), side)
@@ -139,6 +141,10 @@ def test_tiled_tracking_equals_untiled(method, pos_tol, median_tol):
     assert np.nanmax(d) <= pos_tol and np.nanmedian(d) <= median_tol
     assert np.nanmax(np.abs(a.zncc - b.zncc)) <= 1e-3
     assert b.params == a.params and b.method == a.method
+    if method == "lk":
+        # LK's predicted sigma comes from the ZNCC and the reference window: the same
+        v = a.valid[:-1]
+        assert np.allclose(b.sigma_px[:-1][v], a.sigma_px[:-1][v], rtol=1e-3, atol=0)
 
 
 def test_tiled_dense_parallax_is_the_per_tile_call():
