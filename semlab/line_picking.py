@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ._canvas import _canvas_widget, _display_scale, _new_figure, _show_image, _toolbar_busy
-from .annotations import atomic_write_text
 from .errors import ExperimentError, GeometryError, SemlabError
-from .io import read_text
+from .io import read_text, write_with_backup
 from .picking import _UNDO_LEVELS, _check_images, _inside
 
 __all__ = ["LinePicker", "LinePickerFigure", "line_picker_widget"]
@@ -280,7 +279,7 @@ def _write_lines_json(path, data, backup=True):
         except SemlabError:
             pass  # work in progress: written below, with the reason in the warning
     text = json.dumps(data, indent=1) + "\n"
-    bak = atomic_write_text(path, text, backup=backup)
+    bak = write_with_backup(path, text, backup=backup)
     warning = None
     if read_lines is not None:
         try:

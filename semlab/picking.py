@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .annotations import (Correspondences, atomic_write_text, read_correspondences,
-                          write_correspondences)
+from .annotations import Correspondences, read_correspondences, write_correspondences
 from .errors import ExperimentError, GeometryError, ImageError, SemlabError
+from .io import atomic_write_text
 from .proposals import clip_line_to_image, fundamental_dict
 
 __all__ = [
@@ -766,7 +766,7 @@ def write_autosave(picker, save_path):
         The autosave file.
     """
     path = autosave_path(save_path)
-    atomic_write_text(path, json.dumps(picker.to_state()) + "\n", backup=False)
+    atomic_write_text(path, json.dumps(picker.to_state()) + "\n")
     return path
 
 
