@@ -53,11 +53,13 @@ def list_notebooks(only=None):
     return nbs
 
 
+#: The page style shared by the HTML pages of a report (written beside them).
+REPORT_CSS = "report.css"
 #: Result files a run writes (the README's results contract) besides the notebook reports.
 RESULT_FILES = ("experiment_summary.txt", "points3d.csv", "calibration.json", "tracks.csv",
                 "displacements.csv", "strain.npz", "heightmap.tif", "heightmap_sigma.tif",
                 "heightmap.x3p", "heightmap.gsf", "heightmap.ply", "surface_parameters.csv",
-                "bands.csv", "drift.csv", "index.html")
+                "bands.csv", "drift.csv", "index.html", REPORT_CSS)
 #: Where a failed run leaves its partial report (executed notebooks and HTML, no results).
 FAILED_DIR = "failed_run"
 _STAGING_PREFIX = ".semlab-run-"
@@ -163,8 +165,32 @@ def to_html(nb_path, html_path):
     nb = nbformat.read(str(nb_path), as_version=4)
     body, _ = HTMLExporter().from_notebook_node(nb)
     body = re.sub(r"(<body[^>]*>)", lambda m: m.group(1) + _TOGGLE, body, count=1)
+    body = _shared_css(body, Path(html_path).parent / REPORT_CSS)
     atomic_write_text(html_path, body)
     return html_path
+
+
+def _shared_css(page, css_path, min_chars=2000):
+    """Move the large ``<style>`` blocks of the page's head into ``css_path`` and link it.
+
+    nbconvert's lab template inlines ~260 kB of JupyterLab CSS into every page; nine pages of
+    a report carried 2.4 MB of the same style. The file is written once per content.
+    """
+    head_end = page.find("</head>")
+    if head_end < 0:
+        return page
+    head, rest = page[:head_end], page[head_end:]
+    blocks = [m for m in re.finditer(r"<style[^>]*>(.*?)</style>", head, flags=re.S)
+              if len(m.group(1)) >= min_chars]
+    if not blocks:
+        return page
+    css = "\n".join(m.group(1) for m in blocks)
+    if not (css_path.exists() and css_path.read_text(encoding="utf-8") == css):
+        atomic_write_text(css_path, css)
+    for m in reversed(blocks):
+        head = head[:m.start()] + head[m.end():]
+    link = f'<link rel="stylesheet" href="{css_path.name}">'
+    return head.replace("<head>", "<head>\n" + link, 1) + rest
 
 
 def _write_index(out, entries, exp):
@@ -215,7 +241,7 @@ def _keep_failed(stage, out):
     """A failed run: drop its result files, keep its reports as ``out/failed_run/``."""
     for p in list(stage.iterdir()):
         if not re.match(r"^\d\d_.*\.(ipynb|html)$", p.name):
-            _remove(p)
+            _remove(p)          # (report.css too: the partial pages are read unstyled)
     failed = out / FAILED_DIR
     _remove(failed)
     os.replace(stage, failed)
