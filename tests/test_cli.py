@@ -126,7 +126,11 @@ def test_run_on_partial_experiment_finishes(tmp_path, only):
     else:
         make_experiment(exp, seed=1, size=(128, 160), tilts_deg=(), n_frames=3, progress=False)
     out = tmp_path / "report"
+    from test_hostile_inputs import checksum
+
+    before = checksum(exp)
     assert main(["run", str(exp), "--out", str(out), "--quiet"]) == 0
+    assert checksum(exp) == before                 # the experiment folder is only read
     files = {p.name for p in out.iterdir()}
     assert "index.html" in files and "08_validation.html" in files
     if only == "stereo":
