@@ -521,6 +521,13 @@ def load(path) -> Experiment:
                          "SEM metadata", "give [stereo] tilt_deg = [...] in experiment.toml")
         else:
             tilt_deg, tilt_source = None, "unknown"
+        if tilt_deg is not None and max(tilt_deg) - min(tilt_deg) == 0:
+            where = ("[stereo] tilt_deg" if tilt_source == "experiment"
+                     else "the tilts in the images' SEM metadata")
+            raise ExperimentError(
+                f"{toml_path}: {where} give every view the same tilt ({tilt_deg[0]:g}°): heights "
+                "need at least two different stage tilts; give the tilt of each view in "
+                "[stereo] tilt_deg")
         _check_distinct_images(view_paths, [h[3] for h in headers], view_keys, toml_path,
                                tilt_deg)
         corr = st.get("correspondences")

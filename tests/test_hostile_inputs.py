@@ -106,6 +106,9 @@ for tilts in ("[0, 90]", "[-90, 90]", "[-5, 715]", "[-5, 80]", "[-5, nan]", "[-5
         lambda exp, t=tilts: set_toml(exp, "tilt_deg = [-5.0, 5.0]", f"tilt_deg = {t}"),
         ["experiment.toml", "tilt_deg"] + (["nan or inf", "finite number"] if "n" in tilts
                                            else ["below 80°"]))
+CASES["tilt_deg-all-equal"] = (
+    lambda exp: set_toml(exp, "tilt_deg = [-5.0, 5.0]", "tilt_deg = [5.0, 5.0]"),
+    ["experiment.toml", "tilt_deg give every view the same tilt (5°)"])
 CASES["tilt_deg-length"] = (
     lambda exp: set_toml(exp, "tilt_deg = [-5.0, 5.0]", "tilt_deg = [-5.0, 0.0, 5.0]"),
     ["experiment.toml", "tilt_deg has 3 values", "one per image"])
