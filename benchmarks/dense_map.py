@@ -14,6 +14,8 @@ semlab on its measured pixels, DeepFlow's RMSE on the same pixels, their ratio (
 <= 0.8), and the share of pixels within 1σ / 2σ of the truth (target 60-75 % within 1σ).
 
 Run:  python benchmarks/dense_map.py [--quick]     (about 2 minutes per scene on 2 cores)
+      python benchmarks/dense_map.py --low-texture   (polished / real texture, larger subsets
+                                                     and the smoothing prior; ~7 min per scene)
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ def deepflow_heights(views, model):
     return model.height(xx + flow[..., 0], yy + flow[..., 1], xx, yy)
 
 
-def run_scene(name, kw, tmp):
+def run_scene(name, kw, tmp, params=None):
     folder = Path(tmp) / name.split()[0] / str(abs(hash(name)))
     make(folder, kw)
     exp = experiment.load(folder)
@@ -83,7 +85,7 @@ def run_scene(name, kw, tmp):
         st = pipeline.run_stereo(exp, n_boot=0, progress=False)
     t_sparse = time.perf_counter() - t0
     t0 = time.perf_counter()
-    hm = heightmap.heightmap_from_stereo(exp, st)
+    hm = heightmap.heightmap_from_stereo(exp, st, params=params)
     t_dense = time.perf_counter() - t0
     t0 = time.perf_counter()
     zd = deepflow_heights(exp.views(), hm.model)
@@ -107,11 +109,20 @@ def run_scene(name, kw, tmp):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="first scene only")
+    ap.add_argument("--low-texture", action="store_true",
+                    help="only the low-texture scenes (polished, real FEI), with 25x25 subsets, "
+                         "min_zncc 0.3 and the smoothing prior (radius 12 px)")
     args = ap.parse_args(argv)
     rows = []
+    sc = scenes(args.quick)
+    params = None
+    if args.low_texture:
+        sc = [s for s in sc if "speckle" not in s[0]]
+        params = heightmap.DenseParams(half_window=12, min_zncc=0.3, smooth_radius_px=12)
+        print(f"params: {params}")
     with tempfile.TemporaryDirectory() as tmp:
-        for name, kw in scenes(args.quick):
-            r = run_scene(name, kw, tmp)
+        for name, kw in sc:
+            r = run_scene(name, kw, tmp, params)
             rows.append(r)
             print(f"{name}: measured {100 * r['measured']:.1f} %, semlab {r['ours_nm']:.1f} nm, "
                   f"DeepFlow {r['deep_nm']:.1f} nm (ratio {r['ratio']:.2f}), within 1σ "

@@ -52,6 +52,7 @@ __all__ = [
     "initial_guess",
     "sigma_scale",
     "fuse_shiftable",
+    "smooth_bilateral",
     "dense_parallax",
     "height_model_from_tilts",
     "height_model_from_points",
@@ -85,6 +86,12 @@ class DenseParams:
     outlier_px : float
         A subset whose parallax differs from the median of its 5×5 neighbours by more
         than ``max(outlier_px, 4 σ)`` is dropped.
+    smooth_radius_px : int
+        Radius of the edge-preserving smoothing prior after the fusion (0 = none): a
+        bilateral mean over the parallax field (:func:`smooth_bilateral`) whose range
+        kernel is ``smooth_range`` × the pixel's σ, so it averages independent subsets
+        where the surface is smooth and stops at steps larger than the noise.
+    smooth_range : float
     """
 
     half_window: int = 7
@@ -95,11 +102,13 @@ class DenseParams:
     fusion_step_px: int = 2
     zncc_tau: float = 0.5
     outlier_px: float = 0.5
+    smooth_radius_px: int = 0
+    smooth_range: float = 2.0
 
     def margin_px(self):
         """Pixels around a window that its result depends on (subset + fusion reach)."""
         r = self.half_window - 1 if self.fusion_radius_px is None else self.fusion_radius_px
-        return int(2 * self.half_window + r + 6)
+        return int(2 * self.half_window + r + 6 + self.smooth_radius_px)
 
 
 @dataclass
@@ -416,6 +425,49 @@ def fuse_shiftable(values, sigma, zncc, valid, gradients, radius_px, step_px=2, 
     return mu, fs, best, sw
 
 
+def smooth_bilateral(values, sigma, valid, radius_px, range_k=2.0, step_px=2,
+                     corr_px=15):
+    """Edge-preserving smoothing prior: a σ-weighted bilateral mean of the parallax field.
+
+    ``v'(p) = Σ w_q v_q / Σ w_q`` over ``q`` within ``radius_px`` (every ``step_px``) with
+    ``w_q = exp(-|q - p|² / (2 (radius_px/2)²)) · exp(-(v_q - v_p)² / (2 (range_k σ_p)²)) / σ_q²``
+    (Tomasi & Manduchi 1998, ICCV, with the range kernel in units of the estimate's own
+    noise): neighbours that differ by more than the noise — across a step — get no weight.
+
+    Returns
+    -------
+    smoothed : like ``values``
+    sigma : like ``sigma``
+        ``σ_p / sqrt(n_eff)`` with ``n_eff = (Σw)² / Σw²`` counted in independent subsets
+        (``× step_px² / corr_px²``, at least 1); :func:`dense_parallax` then re-measures
+        its scale on the smoothed map.
+    """
+    v = np.asarray(values, float)
+    s = np.asarray(sigma, float)
+    ok = valid & np.isfinite(v) & np.isfinite(s) & (s > 0)
+    vz, sz = np.where(ok, v, 0.0), np.where(ok, s, np.inf)
+    r = int(radius_px)
+    sw = np.zeros(v.shape)
+    sw2 = np.zeros(v.shape)
+    s1 = np.zeros(v.shape)
+    for dy in range(-r, r + 1, max(1, step_px)):
+        for dx in range(-r, r + 1, max(1, step_px)):
+            vq, sq = _take(vz, dx, dy, 0.0), _take(sz, dx, dy, np.inf)
+            with np.errstate(invalid="ignore", over="ignore"):
+                w = (np.exp(-(dx * dx + dy * dy) / (2 * (r / 2.0) ** 2))
+                     * np.exp(-0.5 * ((vq - vz) / (range_k * np.where(ok, s, 1.0))) ** 2)
+                     / sq ** 2)
+            w = np.where(ok & np.isfinite(w), w, 0.0)
+            sw += w
+            sw2 += w * w
+            s1 += w * vq
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(ok, s1 / sw, np.nan)
+        n_eff = np.maximum(1.0, sw ** 2 / sw2 * (step_px / float(corr_px)) ** 2)
+        sig = np.where(ok, s / np.sqrt(n_eff), np.nan)
+    return out, sig
+
+
 def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
                    calibration=None, progress=False):
     """Dense correspondences of the view-0 pixels of ``roi`` in view 1.
@@ -541,6 +593,13 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
         fused = np.where(ok[..., None], vals, np.nan)
         fsig = np.where(ok[..., None], sigs, np.nan)
         best, valid = np.where(ok, zn, -1.0), ok
+    if p.smooth_radius_px > 0:
+        sm, ssm = smooth_bilateral(fused[..., 0], fsig[..., 0], valid, p.smooth_radius_px,
+                                   p.smooth_range, corr_px=2 * h + 1)
+        if "smooth_factor" not in cal:
+            cal["smooth_factor"] = sigma_scale(sm + xx, ssm, valid, h + p.smooth_radius_px)
+        fused[..., 0] = sm
+        fsig[..., 0] = cal["smooth_factor"] * ssm
     # crop to the roi
     sl = (slice(roi[1] - wy0, roi[3] - wy0), slice(roi[0] - wx0, roi[2] - wx0))
     gx, gy = xx[sl].astype(float), yy[sl].astype(float)

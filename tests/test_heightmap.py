@@ -207,3 +207,22 @@ def test_heightmap_plots(scene_pair):
     ax = plots.show_hillshade(z, 0.03)
     assert "hill shade" in ax.get_title()
     plt.close("all")
+
+
+def test_smoothing_prior_averages_noise_but_keeps_steps():
+    rng = np.random.default_rng(4)
+    shape = (60, 90)
+    x = np.arange(90)[None, :] * np.ones((60, 1))
+    truth = np.where(x >= 45, 0.5, 0.0)                      # a step of 10 σ
+    sig = np.full(shape, 0.05)
+    # noise correlated over ~3 px (like overlapping subsets), 1σ = 0.05
+    noise = ndimage.gaussian_filter(rng.normal(size=shape), 1.0)
+    v = truth + 0.05 * noise / noise.std()
+    valid = np.ones(shape, bool)
+    sm, ssm = hm.smooth_bilateral(v, sig, valid, radius_px=8, range_k=2.0, corr_px=3)
+    flat = (slice(10, 50), slice(10, 35))
+    assert np.std((sm - truth)[flat]) < 0.5 * np.std((v - truth)[flat])
+    assert np.all(ssm <= sig + 1e-12) and np.all(ssm[flat] < 0.05)
+    prof = np.median(sm[10:50], axis=0)
+    assert np.sum((prof > 0.05) & (prof < 0.45)) <= 2          # the step stays sharp
+    assert abs(prof[30] - 0.0) < 0.02 and abs(prof[60] - 0.5) < 0.02
