@@ -207,3 +207,30 @@ def _assign(best, rows, r, k):
         a[rows] = getattr(r, f)[k]
         out[f] = a
     return replace(best, **out)
+
+
+def _ladder(h_min, h_max):
+    """Subset half sizes from h_min to h_max growing by ~1.4 (√2: twice the pixels)."""
+    hs = [int(h_min)]
+    while hs[-1] < h_max:
+        hs.append(min(int(h_max), max(hs[-1] + 1, int(round(hs[-1] * 1.4)))))
+    return tuple(hs)
+
+
+def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_sigma_px,
+               ref_coef, cur_coef, target_sigma_px, max_half_window, **kw):
+    """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``; returns the
+    SubsetResult and the (N,) half sizes used."""
+    if target_sigma_px is None:
+        r = icgn_refine(ref_img, img, pts, guess, half_window=half_window, warp=warp,
+                        init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
+                        ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
+        return r, np.full(len(pts), int(half_window))
+    kw.pop("progress", None)
+    a = adaptive_icgn(ref_img, img, pts, guess, target_sigma_px,
+                      half_windows=_ladder(half_window, max(half_window, max_half_window)),
+                      init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
+                      ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
+    # a point that missed the target is still a match (its sigma says how good)
+    reason = np.where(a.subset.converged, "", a.subset.reason)
+    return replace(a.subset, reason=reason), np.maximum(a.half_window, 0)

@@ -15,6 +15,12 @@ sub-pixel subset matching (:mod:`semlab.subset`, ZNCC search then IC-GN with ZNS
   (texture, neighbours, forward–backward, multi-view rank 2).
 - :func:`merge_matches` merges two results (e.g. clicks and automatic matches).
 
+:func:`auto_match` is a chain of named stages, each in its own module: the prior
+(:mod:`semlab.match_prior`: features, global affine, dense flow), grid matching
+(:func:`semlab.adaptive.adaptive_icgn` or fixed subsets, :mod:`semlab.match_band`), and
+the filters (:mod:`semlab.match_filters`); all its parameters are one frozen
+:class:`AutoMatchParams`, recorded in the result.
+
 Conventions: images are 2D arrays indexed ``[row, col]``; points are ``(x, y)`` pixels,
 x right, y down, origin at the centre of the top-left pixel. ``pts`` arrays are
 ``(N, V, 2)``: N points seen in V views.
@@ -22,280 +28,30 @@ x right, y down, origin at the centre of the top-left pixel. ``pts`` arrays are
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import astuple, dataclass, fields, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import GeometryError, ImageError, SemlabError
-from .adaptive import adaptive_icgn
+from .adaptive import _grid_icgn
+from .errors import GeometryError, SemlabError
+from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
+from .match_band import _band_orientation, _coarse_parallax, _combine, _oriented_refine
+from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
+                            _parallax_gradients)
+from .match_prior import (_aligned_noise, _apply_affine, _dense_prior, _field_jacobian,  # noqa: F401
+                          _flow_field, _flow_guess, _norm8, _robust_affine, _subset_std,
+                          _to_uint8, fit_affine)
 from .noise import image_noise_sigma
 from .registration import match_features
-from .subset import icgn_refine, oriented_subset, prefilter_image, zncc_match
+from .subset import icgn_refine, prefilter_image, zncc_match
 
-__all__ = ["MatchResult", "refine_correspondences", "auto_match", "merge_matches",
-           "fit_affine"]
-
-
-@dataclass(frozen=True)
-class MatchResult:
-    """Correspondences of N material points in V views.
-
-    Attributes
-    ----------
-    pts : (N, V, 2) float array
-        Pixel positions ``(x, y)`` in each view; NaN in a non-reference view where that
-        view could not be matched. The reference-view positions are kept exactly as given.
-    zncc : (N, V) float array
-        Zero-normalised cross-correlation of the match in each view (1 in the reference
-        view, -1 where undefined).
-    valid : (N,) bool array
-        True where every view matched with ``zncc >= min_zncc`` and passed the outlier
-        tests.
-    sigma_px : (N,) float array
-        Estimated 1σ random matching error (pixels) along the parallax direction (x),
-        root-mean-square over the non-reference views; NaN where invalid.
-    reason : (N,) str array
-        Empty for valid points, otherwise why the point was rejected.
-    ref_view : int
-        Index of the reference view.
-    kind : (N,) str array
-        Origin of each point: ``"click"`` (refined hand click) or ``"auto"``.
-    source_index : (N,) int array
-        Row of each point in the input of its kind (click row, or grid index for auto).
-    subset_px : (N,) int array
-        Side ``2h+1`` (pixels) of the largest square subset used for the point over the
-        views: its spatial resolution (times the pixel size in µm). With
-        ``target_sigma_px`` it is chosen per point (:func:`semlab.adaptive.adaptive_icgn`);
-        None in results made without it.
-    """
-
-    pts: np.ndarray
-    zncc: np.ndarray
-    valid: np.ndarray
-    sigma_px: np.ndarray
-    reason: np.ndarray
-    ref_view: int
-    kind: np.ndarray
-    source_index: np.ndarray
-    subset_px: np.ndarray = None
-
-    def __len__(self):
-        return len(self.pts)
-
-    @property
-    def n_views(self):
-        """Number of views V."""
-        return self.pts.shape[1]
-
-    def select(self, mask):
-        """A new :class:`MatchResult` with the rows selected by ``mask`` (bool or index)."""
-        m = np.asarray(mask)
-        return replace(self, pts=self.pts[m], zncc=self.zncc[m], valid=self.valid[m],
-                       sigma_px=self.sigma_px[m], reason=self.reason[m], kind=self.kind[m],
-                       source_index=self.source_index[m],
-                       subset_px=None if self.subset_px is None else self.subset_px[m])
-
-    def only_valid(self):
-        """The valid points only."""
-        return self.select(self.valid)
+__all__ = ["MatchResult", "AutoMatchParams", "refine_correspondences", "auto_match",
+           "merge_matches", "fit_affine"]
 
 
 # --------------------------------------------------------------------------- validation
-def _check_images(images, n_views=None):
-    if isinstance(images, np.ndarray) and images.ndim == 2:
-        raise ImageError("images must be a sequence of 2 or more views, got one 2D array")
-    try:
-        ims = [np.asarray(im) for im in images]
-    except TypeError:
-        raise ImageError("images must be a sequence of 2D arrays (one per view)") from None
-    if len(ims) < 2:
-        raise ImageError(f"need 2 or more views, got {len(ims)}")
-    for i, im in enumerate(ims):
-        if im.ndim != 2:
-            raise ImageError(f"view {i} must be a 2D grey image, got shape {im.shape}")
-        if not np.issubdtype(im.dtype, np.number) or np.iscomplexobj(im):
-            raise ImageError(f"view {i} must hold real numbers, got dtype {im.dtype}")
-        if not np.all(np.isfinite(im)):
-            raise ImageError(f"view {i} contains NaN or infinite values")
-    shapes = {im.shape for im in ims}
-    if len(shapes) != 1:
-        raise ImageError(f"all views must have the same shape, got {[im.shape for im in ims]}; "
-                         "crop them to a common size (the data bar removed) first")
-    if n_views is not None and len(ims) != n_views:
-        raise GeometryError(f"pts has {n_views} views per point but {len(ims)} images were given")
-    return [im.astype(np.float64, copy=False) for im in ims]
-
-
-def _check_ref_view(ref_view, n_views):
-    if isinstance(ref_view, bool) or not float(ref_view).is_integer() or \
-            not 0 <= int(ref_view) < n_views:
-        raise GeometryError(f"ref_view must be a view index in 0..{n_views - 1}, got {ref_view!r}")
-    return int(ref_view)
-
-
-def fit_affine(src, dst):
-    """Least-squares 2D affine map ``dst ≈ src @ M[:, :2].T + M[:, 2]``.
-
-    Parameters
-    ----------
-    src, dst : (N, 2) arrays of (x, y) pixels, N >= 3 not collinear.
-
-    Returns
-    -------
-    M : (2, 3) array.
-
-    Raises
-    ------
-    GeometryError
-        With fewer than 3 points or collinear points.
-    """
-    src = np.asarray(src, float)
-    dst = np.asarray(dst, float)
-    if len(src) < 3:
-        raise GeometryError(f"an affine map needs 3 or more points, got {len(src)}")
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 2:
-        raise GeometryError(f"src and dst must be (N, 2) arrays of the same shape, got "
-                            f"{src.shape} and {dst.shape}")
-    c = src - src.mean(0)
-    if np.linalg.matrix_rank(c, tol=1e-9 * max(1.0, np.abs(c).max())) < 2:
-        raise GeometryError("the points are collinear; an affine map is undetermined")
-    X = np.column_stack([src, np.ones(len(src))])
-    sol, *_ = np.linalg.lstsq(X, dst, rcond=None)
-    return sol.T
-
-
-def _apply_affine(M, p):
-    return p @ M[:, :2].T + M[:, 2]
-
-
-
 # --------------------------------------------------------------------------- band-aware refinement
-def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
-    """Gradient of a scattered parallax field by local least-squares planes (k neighbours).
-
-    Returns (n, 2) gradients, and with ``return_residual`` also the RMS residual (n,) of
-    each local plane. ``quadratic``: fit local quadrics instead (curved parallax fields of
-    tall objects), residuals of those."""
-    n = len(xy)
-    kk = min(k, n)
-    _, nb = cKDTree(xy).query(xy, k=kk)
-    nb = nb.reshape(n, kk)
-    d = xy[nb] - xy[:, None, :]                                    # (n, k, 2)
-    cols = [np.ones((n, kk, 1)), d]
-    if quadratic:
-        sc = max(float(np.median(np.abs(d))), 1e-9)               # keep the system scaled
-        q = d / sc
-        cols.append(np.stack([q[..., 0] ** 2, q[..., 0] * q[..., 1], q[..., 1] ** 2], -1))
-    X = np.concatenate(cols, axis=2)                               # (n, k, 3 or 6)
-    y = par[nb]
-    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(X.shape[2])
-    Xty = np.einsum("nki,nk->ni", X, y)
-    sol = np.linalg.solve(XtX, Xty[..., None])[..., 0]
-    if return_residual:
-        res = y - np.einsum("nki,ni->nk", X, sol)
-        return sol[:, 1:], np.sqrt(np.mean(res ** 2, axis=1))
-    return sol[:, 1:]
-
-
-def _band_orientation(query_xy, grid_xy, grid_par, radius_px):
-    """Direction of the parallax bands (degrees from x) and its coherence at query points.
-
-    The structure tensor ``<∇p ∇pᵀ>`` of the parallax field ``p`` averaged within
-    ``radius_px`` (Bigun & Granlund 1987; Jähne, Digital Image Processing, 6th ed.,
-    section 13.3); the band direction is perpendicular to its main eigenvector. Returns
-    ``(angle_deg, coherence, energy)`` with coherence in [0, 1] and energy the mean squared
-    parallax gradient (px/px)².
-    """
-    ok = np.isfinite(grid_par)
-    nq = len(query_xy)
-    if ok.sum() < 6:
-        return np.zeros(nq), np.zeros(nq), np.zeros(nq)
-    gxy, gp = grid_xy[ok], grid_par[ok]
-    g = _parallax_gradients(gxy, gp)
-    T = np.stack([g[:, 0] ** 2, g[:, 0] * g[:, 1], g[:, 1] ** 2], axis=1)
-    tree = cKDTree(gxy)
-    groups = tree.query_ball_point(query_xy, r=radius_px)
-    Tq = np.array([T[idx].mean(0) if len(idx) else np.zeros(3) for idx in groups])
-    jxx, jxy, jyy = Tq.T
-    tr = jxx + jyy
-    coh = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2) / np.maximum(tr, 1e-30)
-    grad_angle = 0.5 * np.degrees(np.arctan2(2 * jxy, jxx - jyy))
-    return (grad_angle + 90.0) % 180.0, coh, tr
-
-
-def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, ref_coef,
-                     cur_coef):
-    """Dense square-subset parallax on a grid every ``half_window`` px, for orientations.
-
-    Returns grid points (G, 2) and the residual to the affine ``M`` along its principal
-    direction (NaN where unmatched).
-    """
-    hgt, wid = ref_img.shape
-    m = half_window + search_px + 2
-    xs = np.arange(m, wid - m, half_window, dtype=float)
-    ys = np.arange(m, hgt - m, half_window, dtype=float)
-    gx, gy = np.meshgrid(xs, ys)
-    grid = np.column_stack([gx.ravel(), gy.ravel()])
-    if len(grid) < 6:
-        return grid, np.full(len(grid), np.nan)
-    g0 = _apply_affine(M, grid)
-    guess, _ = zncc_match(ref_img, img, grid, g0, half_window=half_window, search_px=search_px)
-    L = M[:, :2] - np.eye(2)
-    r = icgn_refine(ref_img, img, grid, np.where(np.isfinite(guess), guess, g0),
-                    half_window=half_window, init_warp=[0, L[0, 0], L[0, 1], 0, L[1, 0], L[1, 1]],
-                    smooth_sigma_px=smooth_sigma_px, ref_prefiltered=ref_coef,
-                    cur_prefiltered=cur_coef)
-    ok = r.converged & (r.zncc > 0.5)
-    res = r.pts - _apply_affine(M, grid)
-    if ok.sum() < 6:
-        return grid, np.full(len(grid), np.nan)
-    rc = res[ok] - np.median(res[ok], axis=0)
-    _, _, vt = np.linalg.svd(rc, full_matrices=False)
-    par = np.where(ok, res @ vt[0], np.nan)
-    # drop gross outliers before differentiating
-    good = np.isfinite(par)
-    bad = _local_outliers(grid[good], par[good], 8, 0.5)
-    par[np.flatnonzero(good)[bad]] = np.nan
-    return grid, par
-
-
-def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length, half_width,
-                     smooth_sigma_px, ref_coef, cur_coef, step_deg=15.0):
-    """IC-GN with thin rectangular subsets along the band direction of each point.
-
-    ``grad`` is one initial warp (6,) for all points or one per point (n, 6)."""
-    n = len(pts_ref)
-    pts = np.full((n, 2), np.nan)
-    sig = np.full(n, np.nan)
-    zn = np.full(n, -1.0)
-    bins = np.round(np.asarray(angles_deg) / step_deg).astype(int) % int(round(180 / step_deg))
-    for b in np.unique(bins):
-        sel = np.flatnonzero(bins == b)
-        off = oriented_subset(half_length, half_width, b * step_deg)
-        # thin subsets pin the across-band gradient terms weakly and IC-GN converges
-        # slowly; 1e-3 px is ample for a choice made at the ~0.03 px level
-        g = grad[sel] if np.ndim(grad) == 2 else grad
-        r = icgn_refine(ref_img, img, pts_ref[sel], guess[sel], half_window=half_length,
-                        init_warp=g, smooth_sigma_px=smooth_sigma_px, subset_offsets=off,
-                        ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, max_iter=60,
-                        tol_px=1e-3)
-        pts[sel] = r.pts
-        sig[sel] = r.sigma_px[:, 0]
-        zn[sel] = r.zncc
-    return pts, sig, zn
-
-
-def _combine(sq_pts, sq_sig, or_pts, or_sig, or_zn, min_zncc, kappa):
-    """Pick the band-aligned estimate where it disagrees with the square subset by more than
-    ``kappa`` of its own σ (intersection-of-confidence-intervals / Lepski rule: the square
-    subset is kept only while it is consistent with the less biased thin subset)."""
-    use = (np.isfinite(or_pts[:, 0]) & (or_zn >= min_zncc)
-           & ~(np.abs(sq_pts[:, 0] - or_pts[:, 0]) <= kappa * or_sig))
-    pts = np.where(use[:, None], or_pts, sq_pts)
-    sig = np.where(use, or_sig, sq_sig)
-    return pts, sig, use
-
 # --------------------------------------------------------------------------- refine clicks
 def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                            warp="affine", min_zncc=0.8, *, smooth_sigma_px=None,
@@ -467,327 +223,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                        kind=np.full(n, "click"), source_index=np.arange(n), subset_px=side)
 
 
-def _ladder(h_min, h_max):
-    """Subset half sizes from h_min to h_max growing by ~1.4 (√2: twice the pixels)."""
-    hs = [int(h_min)]
-    while hs[-1] < h_max:
-        hs.append(min(int(h_max), max(hs[-1] + 1, int(round(hs[-1] * 1.4)))))
-    return tuple(hs)
-
-
-def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_sigma_px,
-               ref_coef, cur_coef, target_sigma_px, max_half_window, **kw):
-    """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``; returns the
-    SubsetResult and the (N,) half sizes used."""
-    if target_sigma_px is None:
-        r = icgn_refine(ref_img, img, pts, guess, half_window=half_window, warp=warp,
-                        init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
-                        ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
-        return r, np.full(len(pts), int(half_window))
-    kw.pop("progress", None)
-    a = adaptive_icgn(ref_img, img, pts, guess, target_sigma_px,
-                      half_windows=_ladder(half_window, max(half_window, max_half_window)),
-                      init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
-                      ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
-    # a point that missed the target is still a match (its sigma says how good)
-    reason = np.where(a.subset.converged, "", a.subset.reason)
-    return replace(a.subset, reason=reason), np.maximum(a.half_window, 0)
-
-
 # --------------------------------------------------------------------------- automatic
-def _to_uint8(img):
-    lo, hi = np.percentile(img, [0.5, 99.5])
-    if hi <= lo:
-        hi = lo + 1.0
-    return np.clip((img - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
-
-
-def _robust_affine(src, dst, thresh_px, seed):
-    """Global affine by RANSAC (cv2.estimateAffine2D) then least squares on inliers."""
-    import cv2
-
-    cv2.setRNGSeed(int(seed))
-    M, inl = cv2.estimateAffine2D(src.astype(np.float32), dst.astype(np.float32),
-                                  method=cv2.RANSAC, ransacReprojThreshold=thresh_px,
-                                  maxIters=5000, confidence=0.999)
-    if M is None or inl is None or inl.sum() < 6:
-        raise GeometryError("no consistent global affine map between the views was found "
-                            "(too few SIFT matches); check that the views show the same area")
-    inl = inl.ravel().astype(bool)
-    M = fit_affine(src[inl], dst[inl])
-    return M, inl
-
-
-def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
-    """Flag values that disagree with the median of their k nearest neighbours.
-
-    A point is an outlier when ``|v - median_nb| > max(n_mad * 1.4826 * MAD_nb,
-    thresh_floor)`` (robust local consistency; Westerweel & Scarano 2005,
-    "Universal outlier detection for PIV data", Exp. Fluids 39, in its median form).
-    """
-    if len(xy) < 3:
-        return np.zeros(len(xy), bool)
-    kk = min(k + 1, len(xy))
-    _, nb = cKDTree(xy).query(xy, k=kk)
-    nbv = values[nb[:, 1:]]
-    med = np.median(nbv, axis=1)
-    mad = np.median(np.abs(nbv - med[:, None]), axis=1)
-    return np.abs(values - med) > np.maximum(n_mad * 1.4826 * mad, thresh_floor)
-
-
-def _subset_std(img, half_window, pts):
-    """Intensity standard deviation of the ``(2h+1)²`` subset at each (x, y) point."""
-    import cv2
-
-    k = 2 * int(half_window) + 1
-    a = np.asarray(img, np.float64)
-    mu = cv2.boxFilter(a, -1, (k, k), borderType=cv2.BORDER_REFLECT)
-    m2 = cv2.boxFilter(a * a, -1, (k, k), borderType=cv2.BORDER_REFLECT)
-    sd = np.sqrt(np.maximum(m2 - mu * mu, 0.0))
-    ij = np.rint(pts).astype(int)
-    return sd[ij[:, 1], ij[:, 0]]
-
-
-def _norm8(img, sigma_px, eps):
-    """Local contrast normalisation to 8 bits: ``(I - G*I) / (sqrt(G*(I - G*I)²) + eps)``
-    with a Gaussian ``G`` of ``sigma_px``, mapped to 128 ± 32 per local standard deviation.
-    Removes the smooth shading differences between SEM views before optical flow."""
-    import cv2
-
-    a = np.asarray(img, np.float32)
-    mu = cv2.GaussianBlur(a, (0, 0), sigma_px)
-    d = a - mu
-    sd = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px))
-    return np.clip(d / (sd + np.float32(eps)) * 32 + 128, 0, 255).astype(np.uint8)
-
-
-def _sample(field, pts):
-    """Bilinear samples of an (H, W) or (H, W, C) float field at (x, y) points:
-    (n,) or (n, C) array (border values replicated)."""
-    import cv2
-
-    f = np.ascontiguousarray(field, dtype=np.float32)
-    n = len(pts)
-    cols = 1024                        # remap maps must stay below 32767 rows
-    rows = max(1, -(-n // cols))
-    mx = np.zeros(rows * cols, np.float32)
-    my = np.zeros(rows * cols, np.float32)
-    mx[:n], my[:n] = pts[:, 0], pts[:, 1]
-    out = cv2.remap(f, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    out = out.reshape(rows * cols, -1)[:n].astype(np.float64)
-    return out[:, 0] if f.ndim == 2 else out
-
-
-def _flow_field(ref_img, img, M, half_window, eps):
-    """Dense optical flow from the reference view to ``img`` mapped into its frame.
-
-    View ``img`` is mapped into the reference frame by the global affine ``M`` (ref → img),
-    both views are contrast-normalised (:func:`_norm8`, regulariser ``eps`` grey levels)
-    and the residual displacement ``f(x)`` (parallax and what the affine misses) is found by
-    DIS optical flow (Kroeger et al. 2016, "Fast optical flow using dense inverse search",
-    ECCV; coarse to fine, so it follows parallax of hundreds of pixels that varies over the
-    image), forward and backward.
-
-    Returns
-    -------
-    warped : (H, W) float32 array, ``img`` mapped into the reference frame by ``M``.
-    fwd, bwd : (H, W, 2) float32 arrays, flow reference → warped and back, pixels.
-    """
-    import cv2
-
-    hgt, wid = ref_img.shape
-    if np.shape(M) == (2, 3):
-        warped = cv2.warpAffine(np.asarray(img, np.float32), M.astype(np.float64), (wid, hgt),
-                                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                borderMode=cv2.BORDER_REFLECT)
-    else:   # a dense prior map (H, W, 2): where each reference pixel lies in img
-        warped = cv2.remap(np.asarray(img, np.float32), M[..., 0], M[..., 1],
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    sig = 2.0 * half_window
-    a8 = _norm8(ref_img, sig, eps)
-    b8 = _norm8(warped, sig, eps)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    dis.setFinestScale(0)
-    fwd = dis.calc(a8, b8, None)
-    bwd = dis.calc(b8, a8, None)
-    return warped, fwd, bwd
-
-
-def _aligned_noise(ref_img, warped, fwd, half_window):
-    """Image noise σ (grey levels) from the difference of two aligned views.
-
-    ``warped`` is resampled along the flow onto the reference; both are high-passed
-    (minus a Gaussian of ``2 half_window``, which removes shading differences) and the
-    second is scaled to the first by least squares. The views share the texture but not the
-    noise, so ``1.4826 MAD(difference) / √2`` estimates the noise of one view whatever its
-    spectrum (e.g. correlated noise of a resampled image, where single-image estimators
-    see almost none); mis-registered edges are outliers of the MAD.
-    """
-    import cv2
-
-    hgt, wid = ref_img.shape
-    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float32)
-    al = cv2.remap(warped, xx + fwd[..., 0], yy + fwd[..., 1], cv2.INTER_LINEAR,
-                   borderMode=cv2.BORDER_REFLECT)
-    a = np.asarray(ref_img, np.float32)
-    sig = 2.0 * half_window
-    ha = a - cv2.GaussianBlur(a, (0, 0), sig)
-    hb = al - cv2.GaussianBlur(al, (0, 0), sig)
-    m = 2 * half_window
-    ha, hb = ha[m:-m, m:-m], hb[m:-m, m:-m]
-    g = float((ha * hb).sum() / max(float((hb * hb).sum()), 1e-30))
-    d = (ha - g * hb).ravel()
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
-
-
-def _field_jacobian(field, pts):
-    """Jacobian (n, 2, 2) ``[[∂u/∂x, ∂u/∂y], [∂v/∂x, ∂v/∂y]]`` of an (H, W, 2) float32
-    field ``(u, v)`` at (x, y) points (central differences, bilinear sampling)."""
-    import cv2
-
-    dx = _sample(cv2.Sobel(field, cv2.CV_32F, 1, 0, ksize=1, scale=0.5), pts)   # (n, 2)
-    dy = _sample(cv2.Sobel(field, cv2.CV_32F, 0, 1, ksize=1, scale=0.5), pts)
-    return np.stack([dx, dy], axis=2)
-
-
-def _flow_guess(M, fwd, bwd, grid, half_window):
-    """Initial guesses of grid points from the flow of :func:`_flow_field`.
-
-    The guess of grid point ``x`` is ``M(x + f(x))`` and its initial warp gradient
-    ``A (I + ∇f) − I`` (``A`` the linear part of ``M``, ``∇f`` of the flow smoothed over a
-    subset).
-
-    Returns
-    -------
-    guess : (n, 2) array of (x, y) pixels in the view.
-    init_warp : (n, 6) array ``(0, du/dx, du/dy, 0, dv/dx, dv/dy)``.
-    fb_err : (n,) array
-        Forward–backward inconsistency ``|f(x) + b(x + f(x))|`` of the flow (pixels): large
-        where the flow is unreliable (occlusions, no texture).
-    """
-    import cv2
-
-    f = _sample(fwd, grid)
-    fb_err = np.hypot(*(f + _sample(bwd, grid + f)).T)
-    if np.shape(M) == (2, 3):
-        guess = _apply_affine(M, grid + f)
-        A = np.broadcast_to(M[:, :2], (len(grid), 2, 2))
-    else:   # dense prior map Φ: guess Φ(x + f), Jacobian ∇Φ there
-        guess = _sample(M, grid + f)
-        A = _field_jacobian(M, grid + f)
-    # flow gradient over a subset (Gaussian-smoothed central differences)
-    J = _field_jacobian(cv2.GaussianBlur(fwd, (0, 0), max(1.0, half_window / 2)), grid)
-    G = np.einsum("nij,njk->nik", A, np.eye(2) + J) - np.eye(2)
-    G = np.clip(G, -0.8, 0.8)
-    z = np.zeros(len(grid))
-    init = np.column_stack([z, G[:, 0, 0], G[:, 0, 1], z, G[:, 1, 0], G[:, 1, 1]])
-    return guess, init, fb_err
-
-
-def _dense_prior(src, dst, shape, half_window, k=9, thresh_px=3.0, step_px=8):
-    """Dense map (H, W, 2) float32: where each reference pixel lies in the other view,
-    interpolated from the sparse feature matches.
-
-    For views that no global affine map describes (a tall object: parallax of hundreds of
-    pixels varying over the image, so that only a small part of the matches fits one
-    affine), the matches are filtered by local consistency (a match whose displacement
-    differs by more than ``thresh_px`` from the median of its ``k − 1`` nearest neighbours
-    is dropped, twice), linearly interpolated between them (nearest value outside their
-    convex hull) on a grid of ``step_px`` and smoothed over a subset.
-    """
-    import cv2
-    from scipy.interpolate import griddata
-
-    s, d = np.asarray(src, float), np.asarray(dst, float) - np.asarray(src, float)
-    for _ in range(2):
-        if len(s) <= k:
-            break
-        _, nb = cKDTree(s).query(s, k=k)
-        med = np.median(d[nb[:, 1:]], axis=1)
-        good = np.hypot(*(d - med).T) < thresh_px
-        s, d = s[good], d[good]
-    if len(s) < 6:
-        raise GeometryError("too few consistent feature matches for a dense parallax prior")
-    hgt, wid = shape
-    gx = np.arange(0, wid + step_px, step_px, dtype=float)
-    gy = np.arange(0, hgt + step_px, step_px, dtype=float)
-    GX, GY = np.meshgrid(gx, gy)
-    q = np.column_stack([GX.ravel(), GY.ravel()])
-    lin = np.column_stack([griddata(s, d[:, c], q, method="linear") for c in (0, 1)])
-    near = np.column_stack([griddata(s, d[:, c], q, method="nearest") for c in (0, 1)])
-    D = np.where(np.isfinite(lin), lin, near).reshape(len(gy), len(gx), 2).astype(np.float32)
-    D = cv2.resize(D, (int(gx[-1]) + 1, int(gy[-1]) + 1), interpolation=cv2.INTER_LINEAR)
-    D = cv2.GaussianBlur(D[:hgt, :wid], (0, 0), max(1.0, float(half_window)))
-    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float32)
-    return np.ascontiguousarray(np.stack([xx + D[..., 0], yy + D[..., 1]], -1))
-
-
-def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
-                       img_coef, ref_coef, max_iter, tol_px):
-    """Distance (pixels) between ``pts_ref`` and the backward IC-GN match of ``pts`` (in
-    ``img``) into ``ref_img``, started at ``pts_ref`` with the inverse of the forward warp
-    gradient (NaN where the backward match fails)."""
-    g = np.where(np.isfinite(warp), warp, 0.0)
-    A = np.stack([np.stack([1 + g[:, 1], g[:, 2]], 1), np.stack([g[:, 4], 1 + g[:, 5]], 1)], 1)
-    det = np.linalg.det(A)
-    A[np.abs(det) < 1e-6] = np.eye(2)
-    B = np.linalg.inv(A) - np.eye(2)
-    z = np.zeros(len(pts))
-    init = np.column_stack([z, B[:, 0, 0], B[:, 0, 1], z, B[:, 1, 0], B[:, 1, 1]])
-    r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
-                    smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
-                    cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)
-    return np.hypot(*(r.pts - pts_ref).T)
-
-
-def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
-    """Per-point residual (pixels) of the multi-view x coordinates to a rank-2 model.
-
-    For an affine camera tilted about an axis near the image y axis, the x coordinates of a
-    point in V views are ``u_i = cos θ_i x + sin θ_i z + ε_i y + t_i``: after removing the
-    linear dependence on the reference-view y (a slightly rotated tilt axis) and the means,
-    the N × V matrix of x coordinates has rank 2 (Tomasi & Kanade 1992; Hartley & Zisserman
-    2nd ed. section 18.2). The rank-2 fit is made on ``mask`` points, re-fitted without
-    the points beyond ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the
-    RMS over views of its distance to the fitted model. Needs V >= 3 (else zeros).
-
-    Returns
-    -------
-    res : (N,) array of residuals in pixels (NaN where a coordinate is NaN).
-    rms : float, RMS residual over the final inliers.
-    """
-    n, v = pts.shape[:2]
-    res = np.zeros(n)
-    if v < 3 or mask.sum() < 8:
-        return res, 0.0
-    U = pts[:, :, 0]
-    y = pts[:, ref, 1]
-    D = np.column_stack([U, y])                 # (N, V+1)
-    fin = np.all(np.isfinite(D), 1)
-    use = mask & fin
-    for _ in range(n_iter):
-        mu = D[use].mean(0)
-        Dc = D - mu
-        # remove the y dependence (regression of each u_i on y), then rank 2
-        yc = Dc[:, -1]
-        beta = (Dc[use, :-1] * yc[use, None]).sum(0) / max((yc[use] ** 2).sum(), 1e-12)
-        R = Dc[:, :-1] - yc[:, None] * beta
-        _, _, vt = np.linalg.svd(R[use], full_matrices=False)
-        P = vt[:2].T @ vt[:2]
-        E = R - R @ P
-        res = np.sqrt(np.mean(E ** 2, axis=1))
-        r_in = res[use]
-        thr = max(n_mad * 1.4826 * np.median(np.abs(r_in - np.median(r_in))) + np.median(r_in),
-                  floor_px)
-        new = mask & fin & (res <= thr)
-        if new.sum() < 8 or np.array_equal(new, use):
-            break
-        use = new
-    res[~fin] = np.nan
-    return res, float(np.sqrt(np.mean(res[use] ** 2)))
-
-
 def _choose_smoothing(ref_img, img, pts_ref, guess, guess0, init_w, half_window, min_zncc,
                       seed, n_trial=200, sigma_px=1.0):
     """Gaussian pre-smoothing for noisy views: 0 if unsmoothed IC-GN converges with
@@ -804,14 +240,54 @@ def _choose_smoothing(ref_img, img, pts_ref, guess, guess0, init_w, half_window,
     return 0.0 if ok.mean() >= 0.5 else float(sigma_px)
 
 
-def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, half_window=10,
-               min_zncc=0.9, max_points=None, seed=0, progress=True, *, search_px=3,
-               smooth_sigma_px=None, consistency_px=0.3, band_aware=True,
-               band_half_width_px=3, kappa=1.0, max_roughness_px=0.08, dense_init=True,
-               wide_search_px=10, min_texture_snr=1.0, multiview_px=0.3, max_iter=60,
-               tol_px=1e-3, max_features=5000, backward_px=0.1, dense_prior_below=0.5,
-               target_sigma_px=None, max_half_window=28):
+@dataclass(frozen=True)
+class AutoMatchParams:
+    """Every parameter of :func:`auto_match`, in one recorded object.
+
+    The fields are the keyword arguments of :func:`auto_match` (documented there), with
+    their defaults; ``dataclasses.asdict(params)`` is what a results file records.
+    Stages: prior (``detector``, ``ratio``, ``max_features``, ``dense_init``,
+    ``dense_prior_below``, ``wide_search_px``), grid matching (``spacing_px``,
+    ``half_window``, ``search_px``, ``smooth_sigma_px``, ``max_iter``, ``tol_px``,
+    ``target_sigma_px``, ``max_half_window``, ``band_aware``, ``band_half_width_px``,
+    ``kappa``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
+    ``max_roughness_px``, ``backward_px``, ``multiview_px``).
+    """
+
+    ref_view: int = 0
+    spacing_px: float = 8
+    detector: str = "sift"
+    ratio: float = 0.8
+    half_window: int = 10
+    min_zncc: float = 0.9
+    max_points: int = None
+    seed: int = 0
+    search_px: int = 3
+    smooth_sigma_px: float = None
+    consistency_px: float = 0.3
+    band_aware: bool = True
+    band_half_width_px: int = 3
+    kappa: float = 1.0
+    max_roughness_px: float = 0.08
+    dense_init: bool = True
+    wide_search_px: int = 10
+    min_texture_snr: float = 1.0
+    multiview_px: float = 0.3
+    max_iter: int = 60
+    tol_px: float = 1e-3
+    max_features: int = 5000
+    backward_px: float = 0.1
+    dense_prior_below: float = 0.5
+    target_sigma_px: float = None
+    max_half_window: int = 28
+
+
+def auto_match(images, params=None, *, progress=True, **overrides):
     """Automatic dense correspondences between SEM views.
+
+    Called as ``auto_match(images, params)`` with an :class:`AutoMatchParams`, or with
+    its fields as keywords (``auto_match(images, spacing_px=6)``), or both (the keywords
+    override ``params``). The parameters used are in ``result.params``.
 
     1. Sparse features (SIFT, Lowe 2004 IJCV 60(2); or Shi–Tomasi corners 1994 described by
        SIFT; or both) matched with Lowe's ratio test.
@@ -937,6 +413,11 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
     GeometryError
         If no global affine map is found or the grid is empty.
     """
+    params = _auto_params(params, overrides)
+    (ref_view, spacing_px, detector, ratio, half_window, min_zncc, max_points, seed, search_px,
+     smooth_sigma_px, consistency_px, band_aware, band_half_width_px, kappa, max_roughness_px,
+     dense_init, wide_search_px, min_texture_snr, multiview_px, max_iter, tol_px, max_features,
+     backward_px, dense_prior_below, target_sigma_px, max_half_window) = astuple(params)
     ims = _check_images(images)
     v = len(ims)
     ref = _check_ref_view(ref_view, v)
@@ -1169,75 +650,18 @@ def auto_match(images, ref_view=0, spacing_px=8, detector="sift", ratio=0.8, hal
         tqdm.write(f"auto_match: {valid.sum()} of {n} grid points accepted")
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma, reason=reason.astype(str),
                        ref_view=ref, kind=np.full(n, "auto"), source_index=gidx,
-                       subset_px=side)
+                       subset_px=side, params=params)
+
+
+def _auto_params(params, overrides):
+    p = AutoMatchParams() if params is None else params
+    if not isinstance(p, AutoMatchParams):
+        raise SemlabError(f"params must be an AutoMatchParams, got {type(p).__name__}")
+    unknown = set(overrides) - {f.name for f in fields(AutoMatchParams)}
+    if unknown:
+        raise SemlabError(f"auto_match has no parameter {', '.join(sorted(unknown))}; see "
+                          "semlab.matching.AutoMatchParams for the parameters")
+    return replace(p, **overrides) if overrides else p
 
 
 # --------------------------------------------------------------------------- merge
-def merge_matches(a, b, min_separation_px=3):
-    """Merge two :class:`MatchResult` (e.g. refined clicks and automatic matches).
-
-    Points whose reference-view positions are closer than ``min_separation_px`` are
-    duplicates; of each group the best one is kept: valid before invalid, then the smaller
-    ``sigma_px``, then the higher mean ZNCC (ties keep ``a``'s point).
-
-    Parameters
-    ----------
-    a, b : MatchResult
-        Same number of views and the same reference view.
-    min_separation_px : float
-        Duplicate distance in the reference view, pixels.
-
-    Returns
-    -------
-    MatchResult
-        ``a``'s kept points first, then ``b``'s, each in their original order.
-
-    Raises
-    ------
-    GeometryError
-        If the results have different numbers of views or reference views.
-    """
-    for r, name in ((a, "a"), (b, "b")):
-        if not isinstance(r, MatchResult):
-            raise SemlabError(f"{name} must be a MatchResult, got {type(r).__name__}")
-    if a.n_views != b.n_views:
-        raise GeometryError(f"cannot merge results with {a.n_views} and {b.n_views} views")
-    if a.ref_view != b.ref_view:
-        raise GeometryError(f"cannot merge results with reference views {a.ref_view} and "
-                            f"{b.ref_view}")
-    pts = np.concatenate([a.pts, b.pts])
-    n = len(pts)
-    if n == 0:
-        return a
-    valid = np.concatenate([a.valid, b.valid])
-    sig = np.concatenate([a.sigma_px, b.sigma_px])
-    zmean = np.concatenate([a.zncc, b.zncc]).mean(1)
-    origin = np.r_[np.zeros(len(a)), np.ones(len(b))]
-    order = np.lexsort((origin, -zmean, np.where(np.isfinite(sig), sig, np.inf), ~valid))
-    xy = pts[:, a.ref_view]
-    tree = cKDTree(xy)
-    taken = np.zeros(n, bool)
-    keep = np.zeros(n, bool)
-    for i in order:            # greedy non-maximum suppression by quality
-        if taken[i]:
-            continue
-        keep[i] = True
-        taken[tree.query_ball_point(xy[i], r=min_separation_px)] = True
-    ka, kb = keep[:len(a)], keep[len(a):]
-    return MatchResult(pts=np.concatenate([a.pts[ka], b.pts[kb]]),
-                       zncc=np.concatenate([a.zncc[ka], b.zncc[kb]]),
-                       valid=np.concatenate([a.valid[ka], b.valid[kb]]),
-                       sigma_px=np.concatenate([a.sigma_px[ka], b.sigma_px[kb]]),
-                       reason=np.concatenate([a.reason[ka], b.reason[kb]]),
-                       ref_view=a.ref_view,
-                       kind=np.concatenate([a.kind[ka], b.kind[kb]]),
-                       source_index=np.concatenate([a.source_index[ka], b.source_index[kb]]),
-                       subset_px=_merge_subset_px(a, ka, b, kb))
-
-
-def _merge_subset_px(a, ka, b, kb):
-    if a.subset_px is None and b.subset_px is None:
-        return None
-    def side(r, k):
-        return np.full(k.sum(), -1) if r.subset_px is None else r.subset_px[k]
-    return np.concatenate([side(a, ka), side(b, kb)])

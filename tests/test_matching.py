@@ -401,3 +401,24 @@ def test_refine_with_target_sigma_sizes_subsets(stereo):
     assert np.median(s) > 15 and np.all(s <= 41)
     assert np.median(adapt.sigma_px[adapt.valid]) < np.median(fixed.sigma_px[fixed.valid])
     assert len(adapt.select(adapt.valid).subset_px) == adapt.valid.sum()
+
+
+def test_auto_match_params_recorded_and_checked(stereo):
+    from dataclasses import asdict
+
+    from semlab.matching import AutoMatchParams
+
+    sc, ims = stereo
+    p = AutoMatchParams(spacing_px=24, band_aware=False)
+    a = auto_match(ims, p, progress=False)
+    assert a.params == p and asdict(a.params)["spacing_px"] == 24
+    b = auto_match(ims, p, progress=False, min_zncc=0.95)
+    assert b.params.min_zncc == 0.95 and b.params.spacing_px == 24
+    assert np.array_equal(a.pts[:, 0], b.pts[:, 0])
+    assert b.valid.sum() <= a.valid.sum()
+    with pytest.raises(SemlabError, match="no parameter spacing"):
+        auto_match(ims, spacing=4, progress=False)
+    with pytest.raises(SemlabError, match="AutoMatchParams"):
+        auto_match(ims, {"spacing_px": 4}, progress=False)
+    with pytest.raises(Exception):
+        p.spacing_px = 4          # frozen

@@ -1,0 +1,123 @@
+"""Outlier filters of automatic matching (stage 3 of :func:`semlab.matching.auto_match`).
+
+One local-median outlier test (:func:`_local_outliers`), a local-plane roughness test
+(:func:`_parallax_gradients`), the forward–backward IC-GN distance
+(:func:`_backward_distance`) and the multi-view rank-2 residual
+(:func:`_multiview_residual`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .subset import icgn_refine
+
+
+def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
+    """Gradient of a scattered parallax field by local least-squares planes (k neighbours).
+
+    Returns (n, 2) gradients, and with ``return_residual`` also the RMS residual (n,) of
+    each local plane. ``quadratic``: fit local quadrics instead (curved parallax fields of
+    tall objects), residuals of those."""
+    n = len(xy)
+    kk = min(k, n)
+    _, nb = cKDTree(xy).query(xy, k=kk)
+    nb = nb.reshape(n, kk)
+    d = xy[nb] - xy[:, None, :]                                    # (n, k, 2)
+    cols = [np.ones((n, kk, 1)), d]
+    if quadratic:
+        sc = max(float(np.median(np.abs(d))), 1e-9)               # keep the system scaled
+        q = d / sc
+        cols.append(np.stack([q[..., 0] ** 2, q[..., 0] * q[..., 1], q[..., 1] ** 2], -1))
+    X = np.concatenate(cols, axis=2)                               # (n, k, 3 or 6)
+    y = par[nb]
+    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(X.shape[2])
+    Xty = np.einsum("nki,nk->ni", X, y)
+    sol = np.linalg.solve(XtX, Xty[..., None])[..., 0]
+    if return_residual:
+        res = y - np.einsum("nki,ni->nk", X, sol)
+        return sol[:, 1:], np.sqrt(np.mean(res ** 2, axis=1))
+    return sol[:, 1:]
+
+
+def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
+    """Flag values that disagree with the median of their k nearest neighbours.
+
+    A point is an outlier when ``|v - median_nb| > max(n_mad * 1.4826 * MAD_nb,
+    thresh_floor)`` (robust local consistency; Westerweel & Scarano 2005,
+    "Universal outlier detection for PIV data", Exp. Fluids 39, in its median form).
+    """
+    if len(xy) < 3:
+        return np.zeros(len(xy), bool)
+    kk = min(k + 1, len(xy))
+    _, nb = cKDTree(xy).query(xy, k=kk)
+    nbv = values[nb[:, 1:]]
+    med = np.median(nbv, axis=1)
+    mad = np.median(np.abs(nbv - med[:, None]), axis=1)
+    return np.abs(values - med) > np.maximum(n_mad * 1.4826 * mad, thresh_floor)
+
+
+def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
+                       img_coef, ref_coef, max_iter, tol_px):
+    """Distance (pixels) between ``pts_ref`` and the backward IC-GN match of ``pts`` (in
+    ``img``) into ``ref_img``, started at ``pts_ref`` with the inverse of the forward warp
+    gradient (NaN where the backward match fails)."""
+    g = np.where(np.isfinite(warp), warp, 0.0)
+    A = np.stack([np.stack([1 + g[:, 1], g[:, 2]], 1), np.stack([g[:, 4], 1 + g[:, 5]], 1)], 1)
+    det = np.linalg.det(A)
+    A[np.abs(det) < 1e-6] = np.eye(2)
+    B = np.linalg.inv(A) - np.eye(2)
+    z = np.zeros(len(pts))
+    init = np.column_stack([z, B[:, 0, 0], B[:, 0, 1], z, B[:, 1, 0], B[:, 1, 1]])
+    r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
+                    smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
+                    cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)
+    return np.hypot(*(r.pts - pts_ref).T)
+
+
+def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
+    """Per-point residual (pixels) of the multi-view x coordinates to a rank-2 model.
+
+    For an affine camera tilted about an axis near the image y axis, the x coordinates of a
+    point in V views are ``u_i = cos θ_i x + sin θ_i z + ε_i y + t_i``: after removing the
+    linear dependence on the reference-view y (a slightly rotated tilt axis) and the means,
+    the N × V matrix of x coordinates has rank 2 (Tomasi & Kanade 1992; Hartley & Zisserman
+    2nd ed. section 18.2). The rank-2 fit is made on ``mask`` points, re-fitted without
+    the points beyond ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the
+    RMS over views of its distance to the fitted model. Needs V >= 3 (else zeros).
+
+    Returns
+    -------
+    res : (N,) array of residuals in pixels (NaN where a coordinate is NaN).
+    rms : float, RMS residual over the final inliers.
+    """
+    n, v = pts.shape[:2]
+    res = np.zeros(n)
+    if v < 3 or mask.sum() < 8:
+        return res, 0.0
+    U = pts[:, :, 0]
+    y = pts[:, ref, 1]
+    D = np.column_stack([U, y])                 # (N, V+1)
+    fin = np.all(np.isfinite(D), 1)
+    use = mask & fin
+    for _ in range(n_iter):
+        mu = D[use].mean(0)
+        Dc = D - mu
+        # remove the y dependence (regression of each u_i on y), then rank 2
+        yc = Dc[:, -1]
+        beta = (Dc[use, :-1] * yc[use, None]).sum(0) / max((yc[use] ** 2).sum(), 1e-12)
+        R = Dc[:, :-1] - yc[:, None] * beta
+        _, _, vt = np.linalg.svd(R[use], full_matrices=False)
+        P = vt[:2].T @ vt[:2]
+        E = R - R @ P
+        res = np.sqrt(np.mean(E ** 2, axis=1))
+        r_in = res[use]
+        thr = max(n_mad * 1.4826 * np.median(np.abs(r_in - np.median(r_in))) + np.median(r_in),
+                  floor_px)
+        new = mask & fin & (res <= thr)
+        if new.sum() < 8 or np.array_equal(new, use):
+            break
+        use = new
+    res[~fin] = np.nan
+    return res, float(np.sqrt(np.mean(res[use] ** 2)))
