@@ -438,7 +438,9 @@ def test_force_replaces_results_only_after_success(small_experiment, tmp_path, m
     assert "01_second.ipynb failed" in err and "no result file was written" in err
     assert "IPKernelApp" not in err and "Traceback" not in err
     assert (out / "points3d.csv").read_text() == first
-    assert not any(p.suffix in (".csv", ".txt") for p in (out / "failed_run").iterdir())
+    kept = {p.name for p in (out / "failed_run").iterdir()}
+    assert not [n for n in kept if n.endswith((".csv", ".txt", ".json", ".npz"))]
+    assert {"00_write.html", "01_second.ipynb", "01_second.html", "report.css"} <= kept
     # a successful --force run replaces semlab's files, keeps the user's, drops the failed run
     monkeypatch.setenv("SEMLAB_NOTEBOOKS", str(ok))
     assert main(["run", str(small_experiment), "--out", str(out), "--force", "--quiet"]) == 0
@@ -463,5 +465,5 @@ def test_perspective_run_writes_no_points3d(small_experiment, tmp_path, capfd):
     assert "04_depth.ipynb failed" in err and "use camera = 'affine'" in err
     assert "IPKernelApp" not in err
     assert [p.name for p in out.iterdir()] == ["failed_run"]
-    assert not [p for p in (out / "failed_run").iterdir() if p.suffix not in (".ipynb", ".html")]
+    assert not [p for p in (out / "failed_run").iterdir() if p.suffix not in (".ipynb", ".html", ".css")]
     assert checksum(small_experiment) == before
