@@ -10,6 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._plotting import (FLAG_COLOURS, REPORT_FONTSIZE, SEED_COLOURS, _plt, _show_gray,
+                        display_range, downsample, height_unit, shared_bins)
+from .plots_motion import (displacement_histograms, lateral_vs_depth, plot_fb_errors,
+                           principal_directions, strain_history, strain_maps, tracks_overview)
+
 __all__ = [
     "display_range", "show_image", "add_scale_bar", "show_images", "show_height_map",
     "show_line_families", "show_epipolar_lines", "plot_stability", "show_static",
@@ -19,20 +24,8 @@ __all__ = [
     "stability_figure", "lateral_vs_depth", "strain_maps", "principal_directions",
     "strain_history", "error_histograms",
     "show_heightmap_panels", "show_hillshade", "plot_profile", "show_bands", "plot_band_profiles",
-    "plot_drift",
+    "plot_drift", "REPORT_FONTSIZE", "FLAG_COLOURS", "SEED_COLOURS",
 ]
-
-
-def _plt():
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def display_range(img, lo=1.0, hi=99.0):
-    """Robust grey-level limits (percentiles) for showing an SEM image."""
-    a, b = np.percentile(img, [lo, hi])
-    return (float(a), float(b)) if b > a else (float(a), float(a) + 1.0)
 
 
 def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels=None, **kw):
@@ -263,64 +256,6 @@ def show_static(fig, dpi=90, fmt="png", quality=80):
 
 # --------------------------------------------------------------------------- report figures
 
-#: smallest font of the report figures (points), readable at the notebook's width
-REPORT_FONTSIZE = 9
-#: colours of the reliability flag of a tracking step, and of the seed kinds
-FLAG_COLOURS = {"valid": "tab:green", "flagged": "tab:red"}
-SEED_COLOURS = {"corner": "tab:blue", "stereo": "tab:orange"}
-
-
-def height_unit(z_um):
-    """The unit heights read best in: ``("nm", 1000.0)`` when every finite ``|z|`` is below
-    1 µm, else ``("µm", 1.0)``.
-
-    Returns
-    -------
-    unit : str
-    factor : float
-        Multiply µm by it to get ``unit``.
-    """
-    z = np.abs(np.asarray(z_um, float))
-    z = z[np.isfinite(z)]
-    return ("nm", 1000.0) if z.size == 0 or z.max() < 1.0 else ("µm", 1.0)
-
-
-def downsample(img, max_px):
-    """Block-mean an image so that its larger side is at most ``max_px`` pixels.
-
-    Returns
-    -------
-    small : (h, w) float32 array
-    k : int
-        Block size (1 = unchanged); pixel ``(i, j)`` of ``small`` covers rows
-        ``k i .. k i + k - 1`` and columns ``k j .. k j + k - 1`` of ``img``.
-    """
-    img = np.asarray(img, np.float32)
-    k = max(1, int(np.ceil(max(img.shape[:2]) / float(max_px))))
-    if k == 1:
-        return img, 1
-    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
-    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)), k
-
-
-def _show_gray(ax, img, pixel_size_um=None, max_px=None):
-    """An SEM image in grey, its pixel centres at integer pixel (or µm) coordinates; returns
-    the scale from pixels to the axes unit (1 or ``pixel_size_um``)."""
-    vmin, vmax = display_range(img)
-    k = 1
-    if max_px:
-        img, k = downsample(img, max_px)
-    s = pixel_size_um or 1.0
-    h, w = img.shape[:2]
-    # a downsampled image is smoothed on screen (its pixels are not the data's anyway)
-    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax,
-              interpolation="bilinear" if k > 1 else "nearest",
-              extent=(-0.5 * s, (w * k - 0.5) * s, (h * k - 0.5) * s, -0.5 * s))
-    unit = "µm" if pixel_size_um else "px"
-    ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
-    ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
-    ax.tick_params(labelsize=REPORT_FONTSIZE)
-    return s
 
 
 def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cmap="coolwarm"):
@@ -449,141 +384,6 @@ def trend_sentence(pos_um, z_um, axis="y", ci=0.95, per_um=10.0, alpha=0.05):
     return head + f": more extrusion at {side} {axis}."
 
 
-def tracks_overview(frames, xy, valid, cycles=None, max_frames=4, max_px=300, trail_every=3):
-    """Tracks over at most ``max_frames`` frames, latest first, in a 2-column grid.
-
-    Each frame is downsampled (:func:`downsample`, larger side ``<= max_px``) so that the
-    figure stays small in an executed notebook; the markers stay at full-resolution pixel
-    coordinates. Titles give the frame and its cycle count; a legend explains the colours.
-
-    Parameters
-    ----------
-    frames : list of F (H, W) arrays, frame 0 the earliest
-    xy : (F, T, 2) array of (x, y) pixels of T tracks per frame
-    valid : (F, T) bool array, the reliability flag of each step
-    cycles : (F,) array, optional
-    max_frames : int
-    max_px : int
-    trail_every : int
-        Draw the trail (positions in the later frames) of every n-th valid track.
-
-    Returns
-    -------
-    Figure
-    """
-    plt = _plt()
-    n = len(frames)
-    order = np.unique(np.linspace(n - 1, 0, min(max_frames, n)).round().astype(int))[::-1]
-    ncols = min(2, len(order))
-    nrows = int(np.ceil(len(order) / ncols))
-    h, w = np.shape(frames[0])[:2]
-    panel_w = 5.0
-    fig, axes = plt.subplots(nrows, ncols, squeeze=False,
-                             figsize=(panel_w * ncols, panel_w * h / w * nrows + 0.9))
-    xy, valid = np.asarray(xy, float), np.asarray(valid, bool)
-    for ax, f in zip(axes.ravel(), order):
-        _show_gray(ax, frames[f], max_px=max_px)
-        ok = valid[f]
-        ax.plot(xy[f, ok, 0], xy[f, ok, 1], ".", color="lime", ms=4, label="valid step")
-        ax.plot(xy[f, ~ok, 0], xy[f, ~ok, 1], "x", color="red", ms=4, mew=1.2,
-                label="flagged step")
-        for j, i in enumerate(np.flatnonzero(ok)[::max(1, trail_every)]):
-            seg = xy[f:, i]
-            ax.plot(seg[:, 0], seg[:, 1], "-", color="yellow", lw=1.0,
-                    label="trail to the last frame" if j == 0 else None)
-        ax.set_xlim(-0.5, w - 0.5)
-        ax.set_ylim(h - 0.5, -0.5)
-        title = f"frame {f}" + ("" if cycles is None else f" · {cycles[f]:g} cycles")
-        ax.set_title(title, fontsize=REPORT_FONTSIZE + 1)
-    for ax in axes.ravel()[len(order):]:
-        ax.axis("off")
-    handles, labels = axes.ravel()[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=REPORT_FONTSIZE,
-               frameon=False)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    return fig
-
-
-def plot_fb_errors(fb_error_px, valid, threshold_px, ax=None):
-    """Forward–backward error of every tracking step by frame, coloured by its flag.
-
-    Parameters
-    ----------
-    fb_error_px : (F, T) array (NaN where a track has no step)
-    valid : (F, T) bool array
-    threshold_px : float
-        The flag's threshold, drawn as a dashed line.
-    """
-    plt = _plt()
-    if ax is None:
-        _, ax = plt.subplots(figsize=(6.5, 3.8))
-    e, v = np.asarray(fb_error_px, float), np.asarray(valid, bool)
-    rng = np.random.default_rng(0)
-    for flag, sel_fn in (("valid", lambda f: v[f]), ("flagged", lambda f: ~v[f])):
-        xs, ys = [], []
-        for f in range(e.shape[0]):
-            sel = sel_fn(f) & np.isfinite(e[f]) & (e[f] > 0)
-            xs.append(f + rng.uniform(-0.2, 0.2, int(sel.sum())))
-            ys.append(e[f, sel])
-        xs, ys = np.concatenate(xs), np.concatenate(ys)
-        ax.scatter(xs, ys, s=5, color=FLAG_COLOURS[flag], label=f"{flag} ({len(xs)})")
-    ax.axhline(threshold_px, color="k", lw=0.8, ls="--", label=f"threshold {threshold_px:g} px")
-    ax.set_yscale("log")
-    ax.set_xlabel("frame (0 = earliest)", fontsize=REPORT_FONTSIZE)
-    ax.set_ylabel("forward–backward error (px)", fontsize=REPORT_FONTSIZE)
-    ax.tick_params(labelsize=REPORT_FONTSIZE)
-    ax.legend(fontsize=REPORT_FONTSIZE)
-    return ax
-
-
-def shared_bins(arrays, n_bins=30):
-    """Histogram bin edges covering the finite values of all ``arrays`` (so that their
-    histograms compare bin by bin)."""
-    vals = np.concatenate([np.asarray(a, float).ravel() for a in arrays])
-    vals = vals[np.isfinite(vals)]
-    if vals.size == 0:
-        return np.linspace(0.0, 1.0, n_bins + 1)
-    lo, hi = float(vals.min()), float(vals.max())
-    if hi <= lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    return np.linspace(lo, hi, n_bins + 1)
-
-
-def displacement_histograms(dx_um, dy_um, d_um, seed, n_bins=30):
-    """Histograms of dx, dy and |d| (µm) per seed kind, with shared bins and overlapping
-    outlines (no kind hides another).
-
-    Parameters
-    ----------
-    dx_um, dy_um, d_um : (T,) arrays (NaN for tracks without a displacement)
-    seed : (T,) str array, e.g. ``"corner"`` / ``"stereo"``
-
-    Returns
-    -------
-    Figure
-    """
-    plt = _plt()
-    seed = np.asarray(seed)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    kinds = [k for k in SEED_COLOURS if np.any(seed == k)] + sorted(
-        set(np.unique(seed)) - set(SEED_COLOURS))
-    for ax, v, name in zip(axes, (dx_um, dy_um, d_um), ("dx", "dy", "|d|")):
-        v = np.asarray(v, float)
-        bins = shared_bins([v], n_bins)
-        for j, kind in enumerate(kinds):
-            sel = np.isfinite(v) & (seed == kind)
-            if sel.any():
-                ax.hist(v[sel], bins=bins, histtype="step", lw=1.6,
-                        color=SEED_COLOURS.get(kind, f"C{j + 2}"),
-                        label=f"{kind}-seeded ({int(sel.sum())})")
-        ax.set_xlabel(f"{name} (µm)", fontsize=REPORT_FONTSIZE)
-        ax.set_ylabel("tracks", fontsize=REPORT_FONTSIZE)
-        ax.tick_params(labelsize=REPORT_FONTSIZE)
-        ax.legend(fontsize=REPORT_FONTSIZE)
-    fig.tight_layout()
-    return fig
-
-
 def show_picked_points(images, pts, point_id, titles=None, pixel_size_um=None):
     """The saved correspondences over every view, labelled by ``point_id``.
 
@@ -703,6 +503,7 @@ def plot_band_profiles(profiles, ncols=3, size=3.2):
         ax.set_xlabel("across the trace (µm)")
     for ax in axs.ravel()[len(profiles):]:
         ax.set_visible(False)
+    return fig
 
 
 def plot_drift(drift, truth=None, axes=None):
@@ -797,121 +598,6 @@ def stability_figure(stabs, title="F stability against the number of clicked poi
         plot_stability(st, ax=ax, label=model)
     ax.set_title(title, fontsize=REPORT_FONTSIZE + 1)
     return fig
-
-
-def lateral_vs_depth(d_um, z_um, dx_um, dy_um, n_boot=500, seed=0):
-    """Height against lateral displacement, four panels, with Pearson and Spearman
-    correlations and their bootstrap CIs (:func:`semlab.stats.correlation`) in the titles.
-
-    Heights are in nm when every ``|z|`` is below 1 µm.
-
-    Parameters
-    ----------
-    d_um, z_um, dx_um, dy_um : (N,) arrays (µm)
-
-    Returns
-    -------
-    Figure
-    """
-    from .stats import correlation
-
-    plt = _plt()
-    unit, f = height_unit(z_um)
-    z = np.asarray(z_um, float)
-    pairs = ((d_um, z, "|d| (µm)", f"z ({unit})"), (d_um, np.abs(z), "|d| (µm)", f"|z| ({unit})"),
-             (dx_um, z, "dx (µm)", f"z ({unit})"), (dy_um, z, "dy (µm)", f"z ({unit})"))
-    fig, axes = plt.subplots(2, 2, figsize=(10, 8))
-    for ax, (x, y, xl, yl) in zip(axes.ravel(), pairs):
-        ax.plot(x, np.asarray(y) * f, ".", ms=4)
-        c = correlation(x, y, n_boot=n_boot, seed=seed)
-        ax.set_title(f"Pearson {c['pearson_r']:+.2f} [{c['pearson_ci'][0]:+.2f}, "
-                     f"{c['pearson_ci'][1]:+.2f}]\nSpearman {c['spearman_rho']:+.2f} "
-                     f"[{c['spearman_ci'][0]:+.2f}, {c['spearman_ci'][1]:+.2f}]",
-                     fontsize=REPORT_FONTSIZE)
-        ax.set_xlabel(xl, fontsize=REPORT_FONTSIZE)
-        ax.set_ylabel(yl, fontsize=REPORT_FONTSIZE)
-        ax.tick_params(labelsize=REPORT_FONTSIZE)
-    fig.tight_layout()
-    return fig
-
-
-def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
-    """Strain component maps side by side, each with a symmetric colour scale (98th
-    percentile of ``|value|``) and its colour bar.
-
-    Parameters
-    ----------
-    grid_x_px, grid_y_px : (nx,), (ny,) grid coordinates (pixels)
-    maps : dict ``{name: (ny, nx) array}`` of dimensionless strains
-    pixel_size_um : float, optional
-        Axes in µm when given.
-    """
-    plt = _plt()
-    s = pixel_size_um or 1.0
-    unit = "µm" if pixel_size_um else "px"
-    ext = [grid_x_px[0] * s, grid_x_px[-1] * s, grid_y_px[-1] * s, grid_y_px[0] * s]
-    fig, axes = plt.subplots(1, len(maps), figsize=(4.5 * len(maps), 3.8), squeeze=False)
-    for ax, (name, v) in zip(axes[0], maps.items()):
-        lim = float(np.nanpercentile(np.abs(v), 98)) or 1e-6
-        im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
-        ax.set_title(name, fontsize=REPORT_FONTSIZE + 1)
-        ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
-        ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
-        ax.tick_params(labelsize=REPORT_FONTSIZE)
-        fig.colorbar(im, ax=ax, label="strain (–)")
-    fig.tight_layout()
-    return fig
-
-
-def principal_directions(grid_x_px, grid_y_px, e1, angle_deg, pixel_size_um=None, ax=None):
-    """The first principal strain as headless arrows (direction, length = size) on the grid.
-
-    Parameters
-    ----------
-    grid_x_px, grid_y_px : (nx,), (ny,) grid coordinates (pixels)
-    e1 : (ny, nx) first principal strain
-    angle_deg : (ny, nx) its direction, degrees from the x axis (image y down)
-    """
-    plt = _plt()
-    if ax is None:
-        _, ax = plt.subplots(figsize=(6.5, 4.5))
-    s = pixel_size_um or 1.0
-    unit = "µm" if pixel_size_um else "px"
-    gx, gy = np.meshgrid(np.asarray(grid_x_px) * s, np.asarray(grid_y_px) * s)
-    a = np.deg2rad(angle_deg)
-    ax.quiver(gx, gy, e1 * np.cos(a), e1 * np.sin(a), color="tab:red", pivot="mid",
-              headwidth=0, angles="xy", label="e1: direction and size")
-    ax.invert_yaxis()
-    ax.set_aspect("equal")
-    ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
-    ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
-    ax.set_title("first principal strain: direction and size", fontsize=REPORT_FONTSIZE + 1)
-    ax.legend(fontsize=REPORT_FONTSIZE, loc="upper right")
-    return ax
-
-
-def strain_history(history, cycles=None, ax=None):
-    """Mean strain of each frame relative to the end state, against cycles (or frame).
-
-    Parameters
-    ----------
-    history : dict with any of ``"exx"``, ``"eyy"``, ``"exy"``: (F,) arrays
-    cycles : (F,) array, optional
-    """
-    plt = _plt()
-    if ax is None:
-        _, ax = plt.subplots(figsize=(6, 3.8))
-    n = len(next(iter(history.values())))
-    x = np.arange(n) if cycles is None else np.asarray(cycles)
-    for k in ("exx", "eyy", "exy"):
-        if k in history:
-            ax.plot(x, history[k], "o-", label=k)
-    ax.set_xlabel("cycles" if cycles is not None else "frame (0 = earliest)",
-                  fontsize=REPORT_FONTSIZE)
-    ax.set_ylabel("mean strain relative to the end (–)", fontsize=REPORT_FONTSIZE)
-    ax.tick_params(labelsize=REPORT_FONTSIZE)
-    ax.legend(fontsize=REPORT_FONTSIZE)
-    return ax
 
 
 def error_histograms(errors_um, ax=None, n_bins=40):
