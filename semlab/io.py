@@ -31,7 +31,9 @@ import os
 import re
 import shutil
 import stat
+import sys
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -183,13 +185,54 @@ def _read_tiff(path):
     return data, source, meta, calib
 
 
+@contextlib.contextmanager
+def _captured_c_stderr():
+    """Capture what C libraries (libjpeg, libpng inside OpenCV) write to file descriptor 2.
+
+    Yields a list that holds the captured text after the block. When descriptor 2 cannot be
+    redirected (no such descriptor), the block runs unchanged and the list stays empty.
+    """
+    captured = []
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:
+            yield captured
+            return
+        with tempfile.TemporaryFile() as tmp:
+            try:
+                os.dup2(tmp.fileno(), 2)
+                yield captured
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                captured.append(tmp.read().decode("utf-8", "replace").strip())
+
+
+_STDERR_LOCK = threading.Lock()
+#: What libjpeg / libpng print about a damaged file (anything else captured is passed on).
+_DECODER_DAMAGE = re.compile(r"JPEG|libpng|PNG|Corrupt|Premature end|CRC|IDAT", re.I)
+
+
 def _read_other(path):
     import cv2
 
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with _captured_c_stderr() as decoder_messages:
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    text = "\n".join(m for m in decoder_messages if m)
+    damage = " ".join(ln.strip() for ln in text.splitlines() if _DECODER_DAMAGE.search(ln))
+    other = "\n".join(ln for ln in text.splitlines() if not _DECODER_DAMAGE.search(ln))
+    if other:  # not the decoder's: someone else wrote to stderr meanwhile; pass it on
+        sys.stderr.write(other + "\n")
+    if data is not None and damage:
+        # libjpeg fills a truncated file with grey and only prints a warning: refuse it
+        raise ImageError(f"{path}: the image is damaged (the decoder says: {damage}); copy "
+                         "it from the microscope again or re-export it as TIFF or PNG")
     if data is None:
+        said = f"; the decoder says: {damage}" if damage else ""
         raise ImageError(f"{path}: cannot read this image (damaged, or not a {path.suffix} "
-                         "image); re-export it as TIFF or PNG")
+                         f"image{said}); re-export it as TIFF or PNG")
     if data.ndim == 3:
         # OpenCV gives BGR(A); SEM images are grey, so average the colour channels.
         data = data[..., :3].mean(axis=2)

@@ -199,6 +199,19 @@ def _nan_image(exp):
     tifffile.imwrite(exp / "end_state" / "view_1.tif", np.full((96, 128), np.nan, np.float32))
 
 
+def _truncated_jpeg(exp):
+    import cv2
+
+    from semlab.io import read_image
+
+    im = read_image(exp / "end_state" / "view_1.tif").data
+    p = exp / "end_state" / "view_1.jpg"
+    cv2.imwrite(str(p), np.clip(im, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    p.write_bytes(p.read_bytes()[: p.stat().st_size * 2 // 3])   # libjpeg fills it with grey
+    set_toml(exp, '"end_state/view_1.tif"', '"end_state/view_1.jpg"')
+
+
+CASES["truncated-jpeg"] = (_truncated_jpeg, ["view_1.jpg", "damaged", "Premature end of JPEG"])
 CASES["png-holding-text"] = (_text_as_png, ["x.png", "cannot read this image", "re-export"])
 CASES["nan-image"] = (_nan_image, ["view_1.tif", "NaN", "8/16-bit"])
 
