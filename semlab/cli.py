@@ -166,6 +166,9 @@ def main(argv=None):
     except SemlabError as exc:
         print(f"semlab: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("semlab: interrupted (no result file was written)", file=sys.stderr)
+        return 130
     except OSError as exc:  # a file system refusal semlab did not foresee: still one line
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"semlab: error: {where}{exc.strerror or exc}", file=sys.stderr)

@@ -480,3 +480,14 @@ def test_perspective_run_writes_no_points3d(small_experiment, tmp_path, capfd):
     assert [p.name for p in out.iterdir()] == ["failed_run"]
     assert not [p for p in (out / "failed_run").iterdir() if p.suffix not in (".ipynb", ".html", ".css")]
     assert checksum(small_experiment) == before
+
+
+def test_interrupt_is_one_line(small_experiment, tmp_path, monkeypatch, capsys):
+    import semlab.report
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(semlab.report, "run", interrupted)
+    assert main(["run", str(small_experiment), "--out", str(tmp_path / "o"), "--quiet"]) == 130
+    assert capsys.readouterr().err == "semlab: interrupted (no result file was written)\n"
