@@ -491,3 +491,17 @@ def test_interrupt_is_one_line(small_experiment, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(semlab.report, "run", interrupted)
     assert main(["run", str(small_experiment), "--out", str(tmp_path / "o"), "--quiet"]) == 130
     assert capsys.readouterr().err == "semlab: interrupted (no result file was written)\n"
+
+
+def test_impossible_metadata_is_ignored_when_the_toml_gives_the_value(small_experiment):
+    from semlab import experiment
+    from semlab.errors import SemlabWarning
+
+    rewrite_view(small_experiment, 0, pixel_size_um=-0.03, tilt_deg=715.0)
+    add_top(small_experiment, "pixel_size_um = 0.03")
+    with pytest.warns(SemlabWarning) as rec:
+        exp = experiment.load(small_experiment)
+    text = " | ".join(str(w.message) for w in rec)
+    assert "view_0.tif: the image metadata pixel size -0.03 µm is impossible" in text
+    assert "the image metadata tilt 715° is impossible; using experiment.toml's -5°" in text
+    assert exp.pixel_size_um == 0.03 and exp.stereo.tilt_deg == [-5.0, 5.0]
