@@ -110,9 +110,10 @@ class TiltCheck:
         ``cos(θ_j + β) / cos(θ_ref + β)`` at the fitted surface tilt ``β``.
     pretilt_deg : float
         The tilt ``β`` of the flat surface on the stage implied by the tilts and x-scales.
-    consistent : bool
+    consistent : bool or None
         ``|β| <= max_pretilt_deg`` and every x-scale within ``k`` σ (and the model
-        tolerance) of its prediction.
+        tolerance) of its prediction; None when too few points (6) allowed the check (then
+        the other fields are NaN and ``message`` says why).
     suggested_tilt_deg : (V,) array
         Tilts that explain the x-scales with a level surface (``β = 0``) and the reference
         view's tilt kept: ``θ_j = ±acos(A_j cos θ_ref)``, the sign of the given order.
@@ -124,7 +125,7 @@ class TiltCheck:
         RMS x-parallax of all points relative to the flat surface's map.
     noise_px : (V,) array
         The RMS that matching noise alone would give.
-    relief_detected : bool
+    relief_detected : bool or None
         Parallax above the noise in some view (the surface is not flat).
     detection_limit_um : float
         Smallest height (3σ) the tilts would show, µm (pixels without a pixel size).
@@ -205,7 +206,15 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
     if t.size != v:
         raise GeometryError(f"{where}: tilt_deg has {t.size} values but there are {v} views")
     r = int(ref_view) % v
-    xs = x_scales(p, r, sigma_px, region)
+    try:
+        xs = x_scales(p, r, sigma_px, region)
+    except GeometryError as exc:
+        try:  # too few points in the region: all points
+            xs = x_scales(p, r, sigma_px, None) if region is not None else None
+        except GeometryError:
+            xs = None
+        if xs is None:
+            return _unchecked(t, f"tilts not checked against the views: {exc}")
     A, As = xs["A"], np.hypot(xs["A_sigma"], scale_tol)
     As[r] = 1.0
     th = np.deg2rad(t)
@@ -277,6 +286,15 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
     if strict and msgs:
         raise GeometryError("; ".join(msgs))
     return res
+
+
+def _unchecked(t, message):
+    nan = np.full(t.size, np.nan)
+    return TiltCheck(tilt_deg=t, x_scale=nan, x_scale_sigma=nan, predicted_x_scale=nan,
+                     pretilt_deg=float("nan"), consistent=None, suggested_tilt_deg=nan,
+                     x_scale_tilt_deg=nan, x_scale_tilt_sigma_deg=nan, parallax_rms_px=nan,
+                     noise_px=nan, relief_detected=None, detection_limit_um=float("nan"),
+                     message=message)
 
 
 def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):

@@ -456,6 +456,13 @@ def test_contradicting_tilts_are_refused_with_the_tilts_to_use():
     assert np.allclose(chk.suggested_tilt_deg, (-5.0, 0.0, 5.0), atol=0.5)
 
 
+def test_too_few_points_leave_the_tilts_unchecked():
+    pts = project(make_scene(n=5, seed=10), (-5.0, 5.0))
+    chk = check_tilts(pts, (-5.0, 85.0))
+    assert chk.consistent is None and "not checked" in chk.message
+    assert np.all(np.isnan(chk.x_scale))
+
+
 def test_identical_views_refused_flat_sample_reported_flat():
     xyz = make_scene(n=300, seed=6)
     pts = project(xyz, (0.0, 0.0))
