@@ -123,7 +123,8 @@ def crb_height_nm(clean, detector, p0, tilts, pixel_size_um, half=10):
     fs = {k: ndimage.map_coordinates(v, [p0[:, 1], p0[:, 0]], order=1, mode="nearest")
           for k, v in f.items()}
     det_f = fs["xx"] * fs["yy"] - fs["xy"] ** 2
-    var_dx = np.where(det_f > 0, fs["yy"] / np.where(det_f > 0, det_f, 1), np.inf)
+    ok = (det_f > 0) & (fs["yy"] > 0)  # no texture: rounding can leave tiny negative sums
+    var_dx = np.where(ok, fs["yy"] / np.where(ok, det_f, 1), np.inf)
     t0, t1 = np.deg2rad(tilts)
     return 1000 * np.sqrt(var_dx) * pixel_size_um * np.cos(t0) / abs(np.sin(t1 - t0))
 
