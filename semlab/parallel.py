@@ -44,7 +44,7 @@ import math
 import os
 import uuid
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -556,8 +556,9 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         tqdm bars over frames (contrast) and tiles.
     **track_kw
         Keywords of ``track_reverse`` (``method``, ``win_size``, ``max_level``, ...,
-        ``seed_kind``). With ``register`` (frames registered to the reference as whole
-        images) the series is tracked untiled.
+        ``seed_kind``). With ``register`` the frames' transforms are estimated once on the
+        whole frames (:func:`semlab.registration.as_registration`), handed to every tile
+        in its own pixels, and each crop is widened by the drift of its corners.
 
     Returns
     -------
@@ -579,8 +580,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
     if len(frames) < 2:
         return track_reverse(frames, seeds, progress=progress, **kw)  # its own error
     shape = np.shape(frames[-1])[:2]
-    if not _tiles_needed(shape, tile_px, scheduler) or kw.get("register") is not None:
-        # registration warps whole frames into the reference geometry: not tiled (yet)
+    if not _tiles_needed(shape, tile_px, scheduler):
         return track_reverse(frames, seeds, progress=progress, **kw)
     seeds = np.asarray(seeds, np.float64)
     level = int(kw.get("max_level", 3))
@@ -606,6 +606,13 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         if np.shape(f)[:2] != shape:
             return track_reverse(frames, seeds, progress=progress, seed_kind=kind, **kw)
 
+    reg = None
+    if kw.get("register") is not None:
+        # the frames' global transforms, estimated once on the whole frames; each tile gets
+        # them in its own coordinates, and its crop also covers the drift
+        from .registration import as_registration
+
+        reg = as_registration(kw["register"], frames)
     reach = _tracking_reach_px(kw, max_motion_px)
     halo = _round_up(64 if halo_px is None else halo_px, _ALIGN_PX)
     H, W = shape
@@ -614,10 +621,14 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         core = t.contains(seeds)
         if not core.any():
             continue
-        y0, y1 = max(0, t.y0 - halo - _round_up(reach, _ALIGN_PX)), \
-            min(H, t.y1 + halo + _round_up(reach, _ALIGN_PX))
-        x0, x1 = max(0, t.x0 - halo - _round_up(reach, _ALIGN_PX)), \
-            min(W, t.x1 + halo + _round_up(reach, _ALIGN_PX))
+        r = reach
+        if reg is not None:
+            c = np.array([[t.x0 - halo, t.y0 - halo], [t.x1 + halo, t.y0 - halo],
+                          [t.x0 - halo, t.y1 + halo], [t.x1 + halo, t.y1 + halo]], float)
+            r += max(float(np.abs(T(c) - c).max()) for T in reg.transforms)
+        r = _round_up(r, _ALIGN_PX)
+        y0, y1 = max(0, t.y0 - halo - r), min(H, t.y1 + halo + r)
+        x0, x1 = max(0, t.x0 - halo - r), min(W, t.x1 + halo + r)
         with np.errstate(invalid="ignore"):
             helper = ((seeds[:, 0] >= t.x0 - halo) & (seeds[:, 0] < t.x1 + halo)
                       & (seeds[:, 1] >= t.y0 - halo) & (seeds[:, 1] < t.y1 + halo))
@@ -636,7 +647,10 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
             crops = [np.asarray(f[y0:y1, x0:x1]) for f in frames]
             shift = np.array([x0 - (thick if side == "left" else 0),
                               y0 - (thick if side == "top" else 0)], float)
-            yield i, (crops, stretch, seeds[m] - shift, side, thick, kw)
+            tkw = kw if reg is None else dict(kw, register=_local_registration(
+                reg, shift, (y1 - y0 + (thick if side in ("top", "bottom") else 0),
+                             x1 - x0 + (thick if side in ("left", "right") else 0))))
+            yield i, (crops, stretch, seeds[m] - shift, side, thick, tkw)
 
     xy = np.full((F, n, 2), np.nan)
     fb = np.full((F, n), np.nan)
@@ -675,7 +689,17 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         warnings.warn(f"no valid track in frame(s) {empty}: their displacements are undefined",
                       TrackingWarning, stacklevel=2)
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap,
-                  seed_kind=kinds, reference_frame=ref, method=method, params=params)
+                  seed_kind=kinds, reference_frame=ref, method=method, params=params,
+                  registration=reg)
+
+
+def _local_registration(reg, origin, shape):
+    """``reg`` in the pixels of a crop whose pixel (0, 0) is ``origin`` (x, y) of the frame."""
+    from .transform2d import Transform2D
+
+    S = Transform2D(np.array([[1.0, 0.0, origin[0]], [0.0, 1.0, origin[1]], [0.0, 0.0, 1.0]]))
+    return replace(reg, transforms=[S.inverse() @ T @ S for T in reg.transforms],
+                   shape=tuple(shape))
 
 
 # --------------------------------------------------------------------------- dense map

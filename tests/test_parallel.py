@@ -28,15 +28,16 @@ def _pair(h=300, w=420, seed=0):
     return ref, cur, pts, guess
 
 
-def _series(h=256, w=352, n_frames=4, seed=0):
+def _series(h=256, w=352, n_frames=4, seed=0, drift_px=(0.0, 0.0)):
     rng = np.random.default_rng(seed)
     base = ndimage.gaussian_filter(rng.normal(size=(h, w)), 1.5)
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
     frames = []
     for k in range(n_frames):
         a = (n_frames - 1 - k) / (n_frames - 1)           # motion grows towards the end
-        ux = a * (3.0 * np.sin(yy / 90.0) + 0.01 * xx)
-        uy = a * 2.0 * np.cos(xx / 70.0)
+        # material motion, plus a stage drift growing towards the early frames
+        ux = a * (3.0 * np.sin(yy / 90.0) + 0.01 * xx) + (n_frames - 1 - k) * drift_px[0]
+        uy = a * 2.0 * np.cos(xx / 70.0) + (n_frames - 1 - k) * drift_px[1]
         im = ndimage.map_coordinates(base, [yy + uy, xx + ux], order=3, mode="mirror")
         # brightness and contrast drift between frames, and noise
         frames.append((im * (0.6 + 0.1 * k) + 0.05 * k) * 100 + rng.normal(0, 2, (h, w)) + 1000)
@@ -167,6 +168,24 @@ def test_tiled_dense_parallax_is_the_per_tile_call():
     assert both.sum() >= 0.97 * whole.valid.sum()
     d = np.abs(whole.x1_px - tiled.x1_px)[both]
     assert np.median(d) <= 1e-3 and d.max() <= 0.05
+
+
+def test_tiled_tracking_with_registration_equals_untiled():
+    from semlab.registration import register_frames
+
+    frames = _series(drift_px=(6.0, -4.0))               # 18 / -12 px of drift at frame 0
+    seeds = shi_tomasi_seeds(frames[-1], quality=0.05, max_corners=600, border_px=40)
+    reg = register_frames(frames, model="translation")
+    a = track_reverse(frames, seeds, register=reg, progress=False)
+    b = parallel.tiled_track_reverse(frames, seeds, register="translation", tile_px=128,
+                                     max_motion_px=8, halo_px=48, progress=False)
+    assert a.valid[:-1].mean() > 0.8
+    # the registration estimated once on the whole frames, the same transforms
+    for ta, tb in zip(a.registration.transforms, b.registration.transforms):
+        assert np.allclose(ta.matrix, tb.matrix, atol=1e-9)
+    assert np.array_equal(a.valid, b.valid)
+    d = np.abs(a.xy - b.xy).max(axis=2)[:-1]
+    assert np.nanmax(d) <= 2e-3 and np.nanmedian(d) <= 1e-4
 
 
 # ------------------------------------------------------------------------------ cluster
