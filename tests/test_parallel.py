@@ -191,7 +191,13 @@ def test_tiled_tracking_with_registration_equals_untiled():
 # ------------------------------------------------------------------------------ cluster
 @pytest.fixture(scope="module")
 def loopback_cluster():
-    """A dask.distributed cluster on 127.0.0.1: a scheduler and two worker processes."""
+    """A dask.distributed cluster on 127.0.0.1: a scheduler and two worker processes.
+
+    No warning filter is needed under -W error: every server (the scheduler's and the
+    workers' HTTP servers too) is bound to 127.0.0.1 port 0. With the defaults the scheduler
+    binds 0.0.0.0:8787 and, when another cluster on the machine holds that port, warns
+    "Port 8787 is already in use" (a UserWarning), which would fail the test.
+    """
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
