@@ -465,6 +465,16 @@ def load(path) -> Experiment:
         key is suggested), fewer than 2 views, images of different sizes, a glob matching
         nothing, cycles/minutes not increasing or of the wrong length, no pixel size anywhere,
         invalid correspondences or lines files.
+
+    Examples
+    --------
+    >>> import tempfile, semlab
+    >>> from semlab.synth import make_experiment
+    >>> folder = make_experiment(tempfile.mkdtemp() + "/exp", seed=1, size=(96, 128),
+    ...                          n_frames=3, progress=False)
+    >>> exp = semlab.load_experiment(folder)
+    >>> len(exp.stereo.view_paths), len(exp.series.frame_paths), exp.pixel_size_um
+    (2, 3, 0.03)
     """
     toml_path = _find_toml(path)
     root = toml_path.parent

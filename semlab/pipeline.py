@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._api import strict_keywords
 from .errors import GeometryError, SemlabError, SemlabWarning
 
 #: Tilt-axis deviations from the image y axis smaller than this are treated as zero.
@@ -33,14 +34,6 @@ AXIS_TOLERANCE_DEG = 0.2
 AXIS_SIGNIFICANCE = 3.0
 #: 1σ error assumed for hand clicks that were not refined (pixels).
 RAW_CLICK_SIGMA_PX = 0.5
-#: Dense strain grid: Gaussian pre-smoothing of its IC-GN (removes most of the interpolation
-#: bias that varies with the sub-pixel phase of the displacement and shows in its gradient),
-#: the lowest ZNCC a grid subset needs to enter the strain (subsets in textureless grain
-#: interiors scatter by 0.1-0.2 px), and the strain window in grid points (see
-#: semlab.strain.gradient_from_field).
-DENSE_SMOOTH_SIGMA_PX = 0.8
-DENSE_MIN_ZNCC = 0.95
-DENSE_WINDOW = 7
 
 
 @dataclass
@@ -115,7 +108,8 @@ def _jsonable(obj):
 
 
 # ------------------------------------------------------------------------------ stereo steps
-def match_views(views, clicks=None, method="auto", progress=True, **kw):
+@strict_keywords
+def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None, auto_kw=None):
     """Correspondences between the views by the chosen method.
 
     Parameters
@@ -131,6 +125,25 @@ def match_views(views, clicks=None, method="auto", progress=True, **kw):
     Returns
     -------
     pts (M, V, 2), kind (M,) str, sigma_px (M,), index into clicks (M,) int (-1 for auto)
+
+    Examples
+    --------
+    Two views of a random texture, the second shifted by (0.3, 0) px:
+
+    >>> import numpy as np, semlab
+    >>> from scipy import ndimage
+    >>> rng = np.random.default_rng(0)
+    >>> a = ndimage.gaussian_filter(rng.normal(size=(160, 160)), 2.0)
+    >>> b = ndimage.shift(a, (0.0, 0.3), order=3, mode="nearest")
+    >>> clicks = np.array([[[60.0, 60.0], [60.0, 60.0]], [[100.0, 90.0], [100.0, 90.0]]])
+    >>> pts, kind, sigma_px, idx = semlab.match_views([a, b], clicks, method="refined",
+    ...                                              progress=False)
+    Traceback (most recent call last):
+    ...
+    semlab.errors.GeometryError: only 2 matched points: heights need at least 4; add clicks or use automatic matching
+    >>> pts, kind, sigma_px, idx = semlab.match_views([a, b], method="auto", progress=False)
+    >>> bool(abs(np.median(pts[:, 1, 0] - pts[:, 0, 0]) - 0.3) < 0.01), len(pts) > 50
+    (True, True)
     """
     from . import matching
 
@@ -142,7 +155,7 @@ def match_views(views, clicks=None, method="auto", progress=True, **kw):
         return clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n)
     parts = []
     if method in ("refined", "merged") and clicks is not None:
-        r = matching.refine_correspondences(views, clicks, **kw.get("refine", {}))
+        r = matching.refine_correspondences(views, clicks, **(refine_kw or {}))
         ok = np.asarray(r.valid)
         parts.append((r.pts[ok], np.array(["click"] * ok.sum()), r.sigma_px[ok], np.flatnonzero(ok)))
         if (~ok).any():
@@ -150,7 +163,7 @@ def match_views(views, clicks=None, method="auto", progress=True, **kw):
                           f"({', '.join(sorted(set(map(str, np.asarray(r.reason)[~ok]))))})",
                           SemlabWarning, stacklevel=2)
     if method in ("auto", "merged"):
-        a = matching.auto_match(views, progress=progress, **kw.get("auto", {}))
+        a = matching.auto_match(views, progress=progress, **(auto_kw or {}))
         ok = np.asarray(a.valid)
         apts = a.pts[ok]
         if parts:  # drop automatic points that duplicate a clicked one
@@ -175,6 +188,111 @@ def match_views(views, clicks=None, method="auto", progress=True, **kw):
         raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; add "
                             "clicks or use automatic matching")
     return pts, kind, sig, idx
+
+
+@dataclass
+class Heights:
+    """Heights above the reference plane with their error bars (see :func:`surface_heights`).
+
+    Attributes
+    ----------
+    xyz_um : (N, 3) float
+        Material x, y (µm) and height z above the reference plane (µm, z > 0 extrusion).
+    z_err_um : (N,) float
+        1σ of z: the matching σ propagated through the tilts, and the bootstrap of the
+        reference plane and view offsets when ``n_boot`` > 0.
+    plane : (3,) float
+        Reference plane ``z = a x + b y + c`` (µm) of the reconstructed points.
+    reference : semlab.surface.ReferenceSurface
+        How the reference plane was chosen (method, inliers, residual).
+    """
+
+    xyz_um: np.ndarray
+    z_err_um: np.ndarray
+    plane: np.ndarray
+    reference: object = None
+
+    @property
+    def z_um(self):
+        """Heights above the reference plane, µm."""
+        return self.xyz_um[:, 2]
+
+
+@strict_keywords
+def surface_heights(pts, tilt_deg, pixel_size_um, sigma_px=None, n_boot=0, seed=0,
+                    tilt_axis_deg=90.0, region=None, three_points_px=None, progress=False):
+    """Heights of matched points above the reference surface, with 1σ error bars.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        ``(x, y)`` pixel positions of N points in V >= 2 views (origin at the centre of the
+        top-left pixel).
+    tilt_deg : (V,) array_like
+        Stage tilt of each view about the image y axis, degrees.
+    pixel_size_um : float
+        Pixel size, µm/px.
+    sigma_px : float or (N,) array, optional
+        1σ matching error of each point (pixels); None: 0.5 px (a hand click).
+    n_boot : int
+        Bootstrap resamples of the plane and offsets added to the error bars (0: none).
+    seed : int
+    tilt_axis_deg : float
+        Tilt-axis direction in view 0, degrees from +x (90 = image y).
+    region, three_points_px : optional
+        The reference surface (:func:`semlab.surface.reference_surface`): by default the
+        dominant flat surface; or the dominant plane within a region of view 0 (rectangle
+        ``(x0, y0, x1, y1)`` px, polygon, or mask); or the plane through three view-0 points.
+
+    Returns
+    -------
+    Heights
+
+    Examples
+    --------
+    A bump of 0.1 µm on a flat surface, seen at -5° and +5° (0.03 µm/px):
+
+    >>> import numpy as np, semlab
+    >>> from semlab.camera import project_affine
+    >>> rng = np.random.default_rng(0)
+    >>> xy = rng.uniform(0, 6, (200, 2))                       # µm
+    >>> z = 0.1 * np.exp(-((xy - 3) ** 2).sum(1) / 0.5)        # µm
+    >>> pts = np.stack([project_affine(np.column_stack([xy, z]), t, 0.03)
+    ...                 for t in (-5.0, 5.0)], axis=1)
+    >>> h = semlab.surface_heights(pts, [-5.0, 5.0], 0.03, sigma_px=0.02)
+    >>> bool(np.abs((h.z_um - h.z_um.min()) - (z - z.min())).max() < 1e-6)
+    True
+    >>> round(float(np.median(h.z_err_um)) * 1000, 1)          # nm, from 0.02 px matching
+    4.9
+    """
+    from . import surface
+
+    pts = np.asarray(pts, float)
+    sig = np.full(len(pts), RAW_CLICK_SIGMA_PX) if sigma_px is None else np.broadcast_to(
+        np.asarray(sigma_px, float), (len(pts),))
+    xyz, z_err, ref = _heights_and_reference(pts, tilt_deg, pixel_size_um, sig, tilt_axis_deg,
+                                             region, three_points_px, seed)
+    if n_boot:
+        boot = surface.bootstrap_heights(pts, tilt_deg, pixel_size_um, n_boot=n_boot, seed=seed,
+                                         tilt_axis_deg=tilt_axis_deg, progress=progress,
+                                         reference=ref)
+        z_err = np.sqrt(z_err ** 2 + np.asarray(boot, float) ** 2)
+    z = ref.heights(xyz)
+    return Heights(xyz_um=np.column_stack([xyz[:, :2], z]), z_err_um=z_err,
+                   plane=np.asarray(ref.plane, float), reference=ref)
+
+
+def _heights_and_reference(pts, tilt_deg, pixel_size_um, sigma_px, tilt_axis_deg, region,
+                           three_points_px, seed):
+    """3D points at known tilts, their matching σ of z, and the reference surface."""
+    from . import reconstruct, surface
+
+    xyz = reconstruct.heights_from_tilts(pts, tilt_deg, pixel_size_um,
+                                         tilt_axis_deg=tilt_axis_deg).xyz_um
+    z_err = np.asarray(surface.height_sigma(sigma_px, tilt_deg, pixel_size_um), float)
+    ref = surface.reference_surface(xyz, z_err, xy_px=pts[:, 0], seed=seed, region=region,
+                                    three_points_px=three_points_px)
+    return xyz, z_err, ref
 
 
 def epipolar_summary(pts):
@@ -285,24 +403,16 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
     -------
     xyz_um (N, 3), z_err_um (N,), ReferenceSurface, tilt_deg (V,), TiltCheck
     """
-    from . import reconstruct, surface, tiltcheck
+    from . import tiltcheck
 
     st = exp.stereo
-    for _ in range(2 if tilt_source in ("estimated", "vanishing_points") else 1):
-        xyz = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
-                                             tilt_axis_deg=tilt_axis_deg).xyz_um
-        z_err = np.asarray(surface.height_sigma(sigma_px, tilt, exp.pixel_size_um), float)
-        ref = surface.reference_surface(xyz, z_err, xy_px=pts[:, 0], seed=seed,
-                                        region=st.reference_region,
-                                        three_points_px=st.reference_points)
-        if tilt_source in ("estimated", "vanishing_points"):
+    estimated = tilt_source in ("estimated", "vanishing_points")
+    for _ in range(3 if estimated else 1):
+        xyz, z_err, ref = _heights_and_reference(pts, tilt, exp.pixel_size_um, sigma_px,
+                                                 tilt_axis_deg, st.reference_region,
+                                                 st.reference_points, seed)
+        if estimated and _ < 2:
             tilt = tiltcheck.level_tilts(tilt, ref.plane)
-    if tilt_source in ("estimated", "vanishing_points"):
-        xyz = reconstruct.heights_from_tilts(pts, tilt, exp.pixel_size_um,
-                                             tilt_axis_deg=tilt_axis_deg).xyz_um
-        ref = surface.reference_surface(xyz, z_err, xy_px=pts[:, 0], seed=seed,
-                                        region=st.reference_region,
-                                        three_points_px=st.reference_points)
     chk = tiltcheck.check_tilts(pts, tilt, sigma_px, region=ref.inliers,
                                 pixel_size_um=exp.pixel_size_um,
                                 strict=tilt_source in ("experiment", "metadata"),
@@ -310,7 +420,8 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
     return xyz, z_err, ref, np.asarray(tilt, float), chk
 
 
-def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
+@strict_keywords
+def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=None, auto_kw=None):
     """Heights of the end-state surface from the experiment's views.
 
     Parameters
@@ -320,6 +431,11 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
         Default: ``merged`` when the experiment has correspondences, else ``auto``.
     n_boot : int
         Bootstrap resamples for the height uncertainty.
+    seed : int
+        Seed of the bootstrap and of the reference-surface RANSAC.
+    refine_kw, auto_kw : dict, optional
+        Keyword arguments of :func:`semlab.matching.refine_correspondences` and
+        :func:`semlab.matching.auto_match` (unknown names raise ``TypeError``).
 
     Returns
     -------
@@ -337,7 +453,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, **match_kw):
                           "correspondences file has only its header; add points, or use "
                           "method='auto'")
     method = method or ("merged" if clicks is not None else "auto")
-    pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress, **match_kw)
+    pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress,
+                                           refine_kw=refine_kw, auto_kw=auto_kw)
     notes = []
     calib = {"pixel_size_um": exp.pixel_size_um, "pixel_size_source": exp.pixel_size_source,
              "camera": exp.stereo.camera, "method": method, "n_points": int(len(pts))}
@@ -465,8 +582,6 @@ class TrackingResult:
         The same in raw pixel coordinates (stage drift included).
     registration : dict
         Stereo view 0 → last frame registration (``A`` (2, 3), ``residual_px``), or empty.
-    strain : dict
-        Sparse and dense strain results (see :func:`strain_fields_from_tracks`).
     pixel_size_um : float
     cycles : (F,) float or None
     """
@@ -480,7 +595,6 @@ class TrackingResult:
     dy_um: np.ndarray
     d_um: np.ndarray
     registration: dict
-    strain: dict
     pixel_size_um: float
     cycles: np.ndarray | None = None
     dx_raw_um: np.ndarray | None = None
@@ -504,118 +618,16 @@ def earliest_valid_frame(valid):
     return np.where(v.any(axis=0), first, -1)
 
 
-def strain_fields_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
-                              grid_step_px=16, heights=None, progress=False,
-                              dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC):
-    """Strain between ``ref_frame`` and the last frame, sparse and dense.
-
-    Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
-    length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
-    disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
-    the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
-    tracks; subsets with ZNCC below ``dense_min_zncc`` are left out, and the gradient is the
-    plane fit over ``dense_window`` × ``dense_window`` grid points, a gauge of
-    ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
-    ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
-    (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
-    out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
-    polished surface) is added.
-
-    Returns
-    -------
-    dict of arrays: ``ref_frame``, ``gauge_length_um``, sparse ``pts_px`` (M, 2) last-frame
-    positions, ``E_lsq`` (M, 2, 2), ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
-    ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
-    ``max_shear``, ``zncc``, ``dense_gauge_um``, and ``E_surface`` when heights are given.
-    """
-    from scipy.interpolate import griddata
-
-    from . import strain as st
-    from .parallel import tiled_icgn
-
-    s = float(pixel_size_um)
-    ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
-    out = {"ref_frame": int(ref_frame)}
-    p_ref, p_end = xy[ref_frame][ok], xy[-1][ok]
-    if ok.sum() < 6:
-        raise SemlabError(f"only {int(ok.sum())} tracks are valid in both frame {ref_frame} and the "
-                          "last frame: too few for strain (need 6)")
-    disp_um = (p_end - p_ref) * s
-    if gauge_length_px is None:
-        span = np.ptp(p_ref, axis=0)
-        density = len(p_ref) / max(span[0] * span[1], 1.0)
-        gauge_length_px = 2.0 * np.sqrt(12.0 / (np.pi * density))
-    out["gauge_length_um"] = gauge_length_px * s
-    G_lsq = st.gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s)
-    G_tri, tri = st.gradient_from_triangles(p_ref * s, disp_um)
-    out.update(pts_px=p_end, E_lsq=st.green_lagrange(G_lsq), tri=tri, E_tri=st.green_lagrange(G_tri))
-
-    # dense: subsets on a grid of the last frame, matched into the reference frame
-    h, w = frames[-1].shape
-    half = 10
-    gx = np.arange(half + 2, w - half - 2, grid_step_px, dtype=float)
-    gy = np.arange(half + 2, h - half - 2, grid_step_px, dtype=float)
-    GX, GY = np.meshgrid(gx, gy)
-    grid = np.column_stack([GX.ravel(), GY.ravel()])
-    back = p_ref - p_end  # where end-state points were in the reference frame
-    guess = np.column_stack([griddata(p_end, back[:, k], grid, method="linear") for k in (0, 1)])
-    near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
-    guess = np.where(np.isfinite(guess), guess, near)
-    # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
-    r = tiled_icgn(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
-                   smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, progress=progress)
-    u = (grid - r.pts) * s  # U(x) = x_end - X_ref, µm
-    u[~r.converged] = np.nan
-    ux = u[:, 0].reshape(GX.shape)
-    uy = u[:, 1].reshape(GX.shape)
-    good = (r.zncc >= dense_min_zncc).reshape(GX.shape)
-    # ∂U/∂x (end-state coordinates) over the strain window, good subsets only
-    G = st.gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan),
-                               grid_step_px * s, window=dense_window)
-    out["dense_gauge_um"] = dense_window * grid_step_px * s
-    eye = np.eye(2)
-    finite = np.all(np.isfinite(G), axis=(-2, -1))
-    Fd = np.full(G.shape, np.nan)
-    Fd[finite] = np.linalg.inv(eye - G[finite])
-    E = st.green_lagrange(Fd - eye)
-    e1, e2, ang = st.principal_strains(E)
-    out.update(grid_x_px=gx, grid_y_px=gy, ux_um=ux, uy_um=uy, E=E, e1=e1, e2=e2, angle_deg=ang,
-               max_shear=st.max_shear(E), zncc=r.zncc.reshape(GX.shape))
-    if heights is not None:
-        z = heights(GX, GY)
-        dzdy, dzdx = np.gradient(z, grid_step_px * s)
-        out["E_surface"] = st.surface_green_lagrange(Fd - eye, np.stack([dzdx, dzdy], axis=-1))
-    return out
-
-
-def stereo_points(exp, out_dir=None, progress=False, **kw):
-    """View-0 positions and heights of the stereo points: read from ``out_dir/points3d.csv``
-    when an earlier step wrote it, else computed with :func:`run_stereo`.
-
-    Returns
-    -------
-    (pts_view0 (N, 2) pixels, z_um (N,)) or None when the experiment has no [stereo].
-    """
-    if exp.stereo is None:
-        return None
-    if out_dir is not None and (Path(out_dir) / "points3d.csv").is_file():
-        from .surface import read_points3d_csv
-
-        d = read_points3d_csv(Path(out_dir) / "points3d.csv")
-        return np.column_stack([d["x_px"], d["y_px"]]), np.asarray(d["z_um"], float)
-    res = run_stereo(exp, progress=progress, **kw)
-    return res.pts[:, 0], res.z_um
-
-
-def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
-                 gauge_length_px=None, progress=True, register="similarity"):
-    """Track points backwards through the series and derive displacements and strain.
+@strict_keywords
+def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, progress=True,
+                 register="similarity"):
+    """Track points backwards through the series and derive the displacements.
 
     Parameters
     ----------
     exp : semlab.experiment.Experiment
     stereo : (pts_view0 (M, 2), z_um (M,)), optional
-        Stereo points (see :func:`stereo_points`): registered from view 0 into the last frame
+        Stereo points (view-0 pixels and heights, e.g. from :func:`run_stereo`): registered from view 0 into the last frame
         and tracked too.
     method : {"lk", "subset"}
         Pyramidal Lucas–Kanade, or the DIC-grade IC-GN subset matching.
@@ -670,33 +682,70 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None,
     z = np.full(n, np.nan)
     if stereo is not None:
         z[stereo_index >= 0] = np.asarray(stereo[1])[stereo_index[stereo_index >= 0]]
-    # strain between the earliest frame that still has enough valid tracks and the last
-    counts = tracks.valid[:-1].sum(axis=1)
-    enough = np.flatnonzero(counts >= max(20, 0.2 * n))
-    strain = {}
-    if len(enough):
-        heights = None
-        if stereo is not None and (stereo_index >= 0).sum() >= 10:
-            from scipy.interpolate import griddata
-
-            pz = tracks.xy[-1][stereo_index >= 0]
-            zz = z[stereo_index >= 0]
-
-            def heights(x, y):
-                zi = griddata(pz, zz, (x, y), method="linear")
-                return np.where(np.isfinite(zi), zi, griddata(pz, zz, (x, y), method="nearest"))
-        strain = strain_fields_from_tracks(frames, tracks.xy, tracks.valid, s, int(enough[0]),
-                                           gauge_length_px=gauge_length_px, heights=heights)
-        strain["history"] = tracking_strain_history(tracks, exp.series.cycles, s)
-    else:
-        warnings.warn("no frame before the last has enough valid tracks for strain", SemlabWarning,
-                      stacklevel=2)
     return TrackingResult(tracks=tracks, seed=kind, stereo_index=stereo_index, z_um=z,
                           frame_from=first, dx_um=disp["dx_um"], dy_um=disp["dy_um"], d_um=disp["d_um"],
                           dx_raw_um=disp["dx_raw_um"], dy_raw_um=disp["dy_raw_um"],
                           d_raw_um=disp["d_raw_um"],
-                          registration=registration, strain=strain, pixel_size_um=s,
+                          registration=registration, pixel_size_um=s,
                           cycles=exp.series.cycles)
+
+
+@strict_keywords
+def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progress=False):
+    """Strain between the earliest frame that still has enough valid tracks and the last.
+
+    Parameters
+    ----------
+    exp : semlab.experiment.Experiment
+    tracking_result : TrackingResult
+    gauge_length_px : float, optional
+        Sparse-strain gauge length (None: from the track density).
+    min_tracks : int
+        A reference frame needs at least ``max(min_tracks, 0.2 × tracks)`` valid tracks.
+
+    Returns
+    -------
+    dict
+        :func:`semlab.strain.strain_from_tracks` plus ``history`` (mean strain of every frame
+        relative to the end state).
+
+    Raises
+    ------
+    SemlabError
+        No frame before the last has enough valid tracks: the strain cannot be computed (an
+        error of this step, never an empty result).
+    """
+    from scipy.interpolate import griddata
+
+    from . import strain as st
+
+    tr = tracking_result
+    tracks = tr.tracks
+    n = tracks.n_tracks
+    counts = tracks.valid[:-1].sum(axis=1)
+    need = max(min_tracks, 0.2 * n)
+    enough = np.flatnonzero(counts >= need)
+    if not len(enough):
+        raise SemlabError(
+            f"{exp.toml_path}: no strain: no frame before the last has enough valid tracks "
+            f"(best: {int(counts.max()) if len(counts) else 0} of {n} in frame "
+            f"{int(np.argmax(counts)) if len(counts) else 0}, need {int(np.ceil(need))}); "
+            "try track_method='subset' or a series with more texture in its early frames")
+    heights = None
+    has_z = np.isfinite(tr.z_um)
+    if has_z.sum() >= 10:
+        pz = tracks.xy[-1][has_z]
+        zz = tr.z_um[has_z]
+
+        def heights(x, y):
+            zi = griddata(pz, zz, (x, y), method="linear")
+            return np.where(np.isfinite(zi), zi, griddata(pz, zz, (x, y), method="nearest"))
+    frames = exp.frames(progress=progress)
+    out = st.strain_from_tracks(frames, tracks.xy, tracks.valid, tr.pixel_size_um,
+                                int(enough[0]), gauge_length_px=gauge_length_px,
+                                heights=heights, progress=progress)
+    out["history"] = tracking_strain_history(tracks, exp.series.cycles, tr.pixel_size_um)
+    return out
 
 
 def tracking_strain_history(tracks, cycles, pixel_size_um):
@@ -713,8 +762,8 @@ def tracking_strain_history(tracks, cycles, pixel_size_um):
 
 
 def write_tracking_results(result, out_dir, overwrite=False):
-    """Write ``tracks.csv``, ``displacements.csv``, ``strain.npz`` and, when the frames were
-    registered, ``drift.csv`` into ``out_dir``.
+    """Write ``tracks.csv``, ``displacements.csv`` and, when the frames were registered,
+    ``drift.csv`` into ``out_dir``.
 
     ``tracks.csv``: ``track_id,seed,frame,x_px,y_px,fb_error_px,valid`` (frame 0 = earliest).
     ``displacements.csv``: :data:`semlab.displacement.DISPLACEMENTS_CSV_COLUMNS`, with the
@@ -729,7 +778,7 @@ def write_tracking_results(result, out_dir, overwrite=False):
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     reg = getattr(result.tracks, "registration", None)
-    paths = [out / "tracks.csv", out / "displacements.csv", out / "strain.npz"]
+    paths = [out / "tracks.csv", out / "displacements.csv"]
     paths += [out / "drift.csv"] if reg is not None else []
     for p in paths:
         if p.exists() and not overwrite:
@@ -743,13 +792,22 @@ def write_tracking_results(result, out_dir, overwrite=False):
     write_displacements_csv(paths[1], result.tracks, disp, seed_kind=result.seed, z_um=result.z_um,
                             overwrite=overwrite)
     if reg is not None:
-        write_drift_csv(paths[3], reg, overwrite=overwrite)
+        write_drift_csv(paths[2], reg, overwrite=overwrite)
+    return paths
+
+
+def write_strain_results(strain, out_dir, overwrite=False):
+    """Write ``strain.npz`` (the dict of :func:`run_strain`, nested dicts flattened as
+    ``outer_inner``) into ``out_dir``."""
+    p = Path(out_dir) / "strain.npz"
+    if p.exists() and not overwrite:
+        raise SemlabError(f"{p}: exists already; write results to a new folder")
     flat = {}
-    for k, v in result.strain.items():
+    for k, v in strain.items():
         if isinstance(v, dict):
             for kk, vv in v.items():
                 flat[f"{k}_{kk}"] = np.asarray(vv)
         else:
             flat[k] = np.asarray(v)
-    np.savez_compressed(paths[2], **flat)
-    return paths
+    np.savez_compressed(p, **flat)
+    return [p]

@@ -15,6 +15,7 @@ import os
 import re
 import shutil
 import tempfile
+import sys
 from pathlib import Path
 
 from .errors import SemlabError
@@ -28,6 +29,12 @@ _TOGGLE = """
 <style>body.semlab-hide-code .jp-InputArea, body.semlab-hide-code .input_area,
 body.semlab-hide-code .jp-Cell-inputWrapper {display:none}</style>
 """
+
+
+#: The analysis steps each numbered notebook shows (``--only`` runs just these).
+NOTEBOOK_STEPS = {"03": ("stereo",), "04": ("stereo", "heightmap"), "05": ("stereo", "tracking"),
+                  "06": ("stereo", "tracking"), "07": ("stereo", "tracking", "strain"),
+                  "08": ("stereo", "tracking")}
 
 
 def notebooks_dir():
@@ -193,7 +200,9 @@ def _shared_css(page, css_path, min_chars=2000):
     return head.replace("<head>", "<head>\n" + link, 1) + rest
 
 
-def _write_index(out, entries, exp):
+def _write_index(out, entries, exp, status=None):
+    steps = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>"
+                    for k, v in (status or {}).items())
     rows = "\n".join(
         f"<tr><td><a href='{html.escape(h)}'>{html.escape(n)}</a></td><td>{html.escape(s)}</td></tr>"
         for n, h, s in entries)
@@ -204,6 +213,7 @@ def _write_index(out, entries, exp):
 <style>body{{font-family:sans-serif;max-width:900px;margin:2em auto}} td{{padding:4px 12px}}</style>
 </head><body><h1>semlab report: {html.escape(exp.name)}</h1>
 <pre>{html.escape(exp.summary())}</pre>
+<h2>Analysis steps</h2><table>{steps}</table>
 <h2>Notebooks</h2><table>{rows}</table><h2>Result files</h2><ul>{flist}</ul></body></html>"""
     atomic_write_text(out / "index.html", page)
 
@@ -248,8 +258,11 @@ def _keep_failed(stage, out):
     return failed
 
 
-def run(experiment, out, force=False, only=None, progress=True, kernel_name=None):
-    """Execute the notebooks on an experiment and write reports and result files to ``out``.
+def run(experiment, out, force=False, only=None, progress=True, kernel_name=None, config=None):
+    """Run the analysis of an experiment, then execute the notebooks on its results.
+
+    The analysis (:class:`semlab.analysis.Analysis`) computes every step once and writes the
+    result files into ``out``; the notebooks then load the cached results and show them.
 
     The run is all or nothing: the notebooks write into a hidden staging folder inside
     ``out``; only when every notebook has finished are the files moved into ``out`` (each by
@@ -271,7 +284,9 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
     only : list of str, optional
         Notebook numbers to run (e.g. ``["04", "05"]``).
     progress : bool
-        A progress bar over notebooks.
+        Progress bars over the analysis steps and the notebooks.
+    config : semlab.AnalysisConfig or dict, optional
+        Settings of the analysis (default: the defaults), passed to the notebooks too.
 
     Returns
     -------
@@ -280,12 +295,14 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
     Raises
     ------
     SemlabError
-        Invalid experiment or ``out`` (checked before any work), or a failing notebook (its
-        name and the failing cell's error are in the message).
+        Invalid experiment or ``out`` (checked before any work), a failing notebook (its
+        name and the failing cell's error are in the message), or a failed analysis step
+        (named, with its error, after the report of everything else has been written).
     """
     import papermill as pm
     from tqdm.auto import tqdm
 
+    from .analysis import Analysis
     from .experiment import find_experiment_root, load
 
     check_out_dir(out, find_experiment_root(experiment), force)
@@ -303,7 +320,17 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
                 if (out / name).is_file():
                     shutil.copy2(out / name, stage / name)
         atomic_write_text(stage / "experiment_summary.txt", exp.summary() + "\n")
-        params = {"experiment": str(exp.root), "out_dir": str(stage)}
+        # the analysis computes every step once (or loads it from the cache in out/.semlab,
+        # which outlives the run) and writes its result files into the staging folder
+        cache_dir = out / ".semlab" / "cache"
+        analysis = Analysis(exp, stage, config=config, progress=progress, cache_dir=cache_dir)
+        wanted = {s for nb in nbs for s in NOTEBOOK_STEPS.get(nb.name[:2], ())}
+        status = analysis.run([s for s in analysis.applicable_steps() if s in wanted])
+        for step, said in analysis.warnings.items():
+            for msg in said:
+                print(f"semlab: warning ({step}): {msg}", file=sys.stderr)
+        params = {"experiment": str(exp.root), "out_dir": str(stage),
+                  "cache_dir": str(cache_dir), "config": analysis.config.as_dict()}
         entries = []
         for nb in tqdm(nbs, desc="notebooks", disable=not progress):
             dest = stage / nb.name
@@ -328,10 +355,13 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
             _show_final_paths(dest, stage, out)
             to_html(dest, dest.with_suffix(".html"))
             entries.append((nb.stem, dest.with_suffix(".html").name, "ok"))
-        _write_index(stage, entries, exp)
+        _write_index(stage, entries, exp, status)
         _publish(stage, out, clear_owned=force and not only)
     except BaseException:
         if stage.exists():
             shutil.rmtree(stage, ignore_errors=True)
         raise
+    failed = {k: v for k, v in status.items() if v != "ok"}
+    if failed:
+        raise SemlabError("; ".join(failed.values()) + f" (the report in {out} shows the rest)")
     return out

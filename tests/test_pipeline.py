@@ -1,6 +1,5 @@
 """The stereo pipeline end to end on synthetic experiments with truth."""
 
-import warnings
 
 import numpy as np
 import pytest
@@ -22,9 +21,7 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     exp = _make(tmp_path, seed=0, tilts_deg=tuple(tilts), tilt_in_toml=False,
                 tilt_in_metadata=False, write_block=False)
     assert exp.stereo.tilt_deg is None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+    res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
     assert res.tilt_source == "estimated"
     rel = res.tilt_deg - res.tilt_deg[1]
     assert np.abs(rel - (tilts - tilts[1])).max() < 0.1
@@ -49,9 +46,7 @@ def test_empty_correspondences_file_means_automatic_matching(tmp_path):
     csv.write_text(csv.read_text().splitlines()[0] + "\n")
     exp = experiment.load(exp.toml_path)
     assert len(exp.correspondences().pts) == 0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.run_stereo(exp, n_boot=0, progress=False)
+    res = pipeline.run_stereo(exp, n_boot=0, progress=False)
     assert res.method == "auto" and len(res.pts) > 50
 
 
@@ -121,9 +116,7 @@ def test_perspective_height_errors_follow_the_click_noise(tmp_path):
     has the size of the actual height errors."""
     exp, h = _perspective_experiment(tmp_path, noise_px=0.1)
     corr = exp.correspondences()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
+    res = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
     err = validation.height_errors(res.z_um, h, res.xyz_um[:, :2])["rmse_um"]
     # raw clicks are assigned the hand-click sigma (0.5 px): scale to the true 0.1 px
     pred = np.sqrt(np.mean(res.z_err_um ** 2)) * 0.1 / pipeline.RAW_CLICK_SIGMA_PX

@@ -2,7 +2,6 @@
 `pipeline.run_stereo`): no correspondences file, tilts unknown or only in the TIFF tags."""
 
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -45,9 +44,7 @@ def test_full_size_views_tilts_from_tiff_tags(tmp_path):
                                  tilt_in_metadata=True, progress=False)
     exp = experiment.load(toml)
     assert exp.stereo.tilt_source == "metadata" and exp.correspondences() is None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.run_stereo(exp, n_boot=0, progress=False)
+    res = pipeline.run_stereo(exp, n_boot=0, progress=False)
     assert res.tilt_source == "metadata" and res.method == "auto"
     zt = validation.true_height_at(exp.truth_dir, res.pts[:, 0])
     err = validation.height_errors(res.z_um, zt, res.xyz_um[:, :2])

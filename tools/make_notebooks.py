@@ -16,8 +16,13 @@ HERE = Path(__file__).resolve().parents[1] / "notebooks"
 PARAMS = '''# parameters (papermill injects new values after this cell)
 # experiment: the experiment folder or its experiment.toml
 experiment = "../data_samples/demo"
-# out_dir: folder for result files (semlab run sets it); None = do not write files
+# out_dir: folder for result files and the step cache (semlab run sets it);
+# None = no result files (results are cached in ~/.cache/semlab)
 out_dir = None
+# config: analysis settings (semlab.AnalysisConfig fields, e.g. {"track_method": "subset"})
+config = {}
+# cache_dir: the step cache (semlab run sets it); None = out_dir/.semlab/cache
+cache_dir = None
 '''
 
 SETUP = '''%matplotlib inline
@@ -27,6 +32,9 @@ import semlab
 from semlab import experiment as sx, plots
 exp = sx.load(experiment)
 print(exp.summary())
+# every result below comes from this one analysis: computed once (by semlab run, or here on
+# first use) and cached in out_dir; the notebooks only show it
+an = semlab.Analysis(exp, out_dir, config=config, cache_dir=cache_dir, progress=False)
 '''
 
 
@@ -54,6 +62,19 @@ from pathlib import Path
 DEMO = Path(semlab.__file__).resolve().parents[1] / "data_samples" / "demo"
 if Path(experiment).resolve() in (DEMO, DEMO / "experiment.toml"):
     assert summary == {expected!r}, summary
+""")
+
+
+def check_demo(text, condition):
+    """A known-answer cell against the demo's ground truth: ``text`` computes the key numbers
+    and prints them; on the shipped demo the cell asserts ``condition`` (an expression of
+    those numbers), so nbval fails on a wrong result. On other experiments it only prints."""
+    return code(text.strip("\n") + f"""
+# the shipped demo has a known answer: a wrong number fails the notebook (nbval in CI)
+from pathlib import Path
+DEMO = Path(semlab.__file__).resolve().parents[1] / "data_samples" / "demo"
+if Path(experiment).resolve() in (DEMO, DEMO / "experiment.toml"):
+    assert {condition}, "known answer missed on the demo: " + {condition!r}
 """)
 
 
@@ -258,7 +279,7 @@ the eight-point F is poorly determined — semlab says so instead of returning a
            'stability_resamples = 40\n'),
     code(SETUP),
     code('''
-from semlab import epipolar, matching
+from semlab import epipolar
 
 
 def fit(fn, x0, x1):
@@ -274,8 +295,8 @@ if corr is None:
     print("No correspondences: this notebook needs [stereo] correspondences (see 02).")
 else:
     views = exp.views()
-    refined = matching.refine_correspondences(views, corr.pts)
-    sets = {"clicked": corr.pts, "refined": refined.pts[refined.valid]}
+    refined = an.stereo(method="refined")  # the refined clicks: computed once, cached
+    sets = {"clicked": corr.pts, "refined": refined.pts[refined.kind == "click"]}
     F = {}
     for name, p in sets.items():
         x0, x1 = p[:, 0], p[:, 1]
@@ -337,27 +358,21 @@ correspondences (hand clicks refined by sub-pixel matching, plus automatic match
 The reference method — raw clicks through the same geometry — is shown alongside: its error
 is of the size of the thing measured.
 """),
-    params('# method: "raw", "refined", "auto" or "merged"; None = merged if clicks exist\n'
-           'method = None\n'
-           '# n_boot: bootstrap resamples for the error bars\n'
-           'n_boot = 100\n'),
+    params(),
     code(SETUP),
     code('''
-from semlab import pipeline, surface
+from semlab import surface
 if exp.stereo is None:
     print("This experiment has no [stereo] table: no heights to compute.")
     res = None
 else:
-    res = pipeline.run_stereo(exp, method=method, n_boot=n_boot, progress=False)
+    res = an.stereo()
     print(f"{len(res.z_um)} points ({(res.kind == 'click').sum()} clicked, {(res.kind == 'auto').sum()} automatic), "
           f"method {res.method}")
     print(f"tilts {np.round(res.tilt_deg, 3)} deg from {res.tilt_source}; tilt axis {res.tilt_axis_deg:.2f}°")
     print(f"z from {res.z_um.min():+.3f} to {res.z_um.max():+.3f} µm; median 1σ {np.median(res.z_err_um) * 1000:.1f} nm")
     for n in res.notes:
         print("note:", n)
-    if out_dir:
-        for f in pipeline.write_stereo_results(res, out_dir, overwrite=True):  # out_dir is this run's own
-            print("wrote", f.name)
 '''),
     md("## Height map: measured points over view 0 (colour = z; nm below 1 µm)"),
     code('''
@@ -409,7 +424,7 @@ if res is not None:
     md("## The reference method: raw clicks (no refinement) through the same geometry"),
     code('''
 if res is not None and exp.correspondences() is not None:
-    raw = pipeline.run_stereo(exp, method="raw", n_boot=0, progress=False)
+    raw = an.stereo(method="raw")
     print(f"raw clicks: {len(raw.z_um)} points, median 1σ {np.median(raw.z_err_um) * 1000:.0f} nm "
           f"(a 0.5 px click error is ~{0.5 * 2 ** 0.5 * exp.pixel_size_um / np.sin(np.deg2rad(np.ptp(raw.tilt_deg))) * 1000:.0f} nm of height)")
 '''),
@@ -424,19 +439,14 @@ on the map itself. Heights are above the same reference plane as the points. Wri
 `heightmap.ply`, `surface_parameters.csv` and `bands.csv`.
 """),
     code('''
-from semlab import heightmap, metrology
+from semlab import metrology
 hm = None
 if res is not None:
-    hm = heightmap.heightmap_from_stereo(exp, res)
+    hm, bands = an.heightmap()  # computed once by the analysis, which wrote the files
     print(f"measured {100 * hm.valid.mean():.1f} % of view 0; median 1σ {np.nanmedian(hm.sigma_um) * 1e3:.1f} nm "
           f"(σ scale {hm.parallax.sigma_scale:.2f} from the map itself)")
     for n in hm.notes:
         print("note:", n)
-    bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
-                                pts_px=res.pts[:, 0], crack_id=res.crack_id)
-    if out_dir:
-        for f in heightmap.write_heightmap_results(hm, out_dir, bands=bands, overwrite=True).values():
-            print("wrote", f)
     plots.show_heightmap_panels(hm.z_um, hm.sigma_um, exp.pixel_size_um)
 '''),
     code('''
@@ -467,16 +477,25 @@ if hm is not None:
     h, w = hm.z_um.shape
     tool.set_points((0.35 * w, 0.85 * h), (0.65 * w, 0.15 * h))
 '''),
+    md("## Key numbers against the truth (checked on the demo)"),
+    check_demo('''
+from semlab import validation
+if res is not None and exp.truth_dir is not None:
+    e = validation.height_errors(res.z_um, validation.true_height_at(exp.truth_dir, res.pts[:, 0]),
+                                 res.xyz_um[:, :2])
+    rmse_nm = e["rmse_um"] * 1000
+    within_1sigma = float(np.mean(np.abs(e["err_um"]) <= res.z_err_um))
+    print(f"{e['n']} points: height RMSE {rmse_nm:.1f} nm, {100 * within_1sigma:.0f} % within 1σ")
+''', "e['n'] >= 500 and rmse_nm < 15 and 0.55 <= within_1sigma <= 0.85"),
 ]
 
 TRACK_SETUP = '''
-from semlab import pipeline, stats
+from semlab import stats
 if exp.series is None:
     print("This experiment has no [series] table: nothing to track.")
     tr = None
 else:
-    sp = pipeline.stereo_points(exp, out_dir)
-    tr = pipeline.run_tracking(exp, stereo=sp, method=track_method, progress=False)
+    tr = an.tracking()
     t = tr.tracks
     print(f"{t.n_tracks} tracks ({(tr.seed == 'corner').sum()} corner-seeded, "
           f"{(tr.seed == 'stereo').sum()} stereo-seeded), method {t.method}")
@@ -497,14 +516,9 @@ featureless: every step carries its forward–backward error and a valid flag, a
 step suspends the track instead of turning into a jump. Results are stored by frame index,
 0 = earliest.
 """),
-    params('# track_method: "lk" (pyramidal Lucas-Kanade) or "subset" (IC-GN, DIC-grade)\n'
-           'track_method = "lk"\n'),
+    params(),
     code(SETUP),
-    code(TRACK_SETUP + '''
-if tr is not None and out_dir:
-    for f in pipeline.write_tracking_results(tr, out_dir, overwrite=True):  # out_dir is this run's own
-        print("wrote", f.name)
-'''),
+    code(TRACK_SETUP),
     md("""
 ## Stage drift between the frames
 
@@ -549,6 +563,17 @@ if tr is not None:
         ks = stats.compare_distributions(a, c)
         print(f"corner- vs stereo-seeded |d|: KS statistic {ks['ks_statistic']:.3f}, p = {ks['p_value']:.3g}")
 '''),
+    md("## Key numbers against the truth (checked on the demo)"),
+    check_demo('''
+from semlab import validation
+if tr is not None and exp.truth_dir is not None:
+    true = validation.true_track_positions(exp.truth_dir, t.xy[-1])
+    err = np.hypot(*(t.xy - true).transpose(2, 0, 1))
+    bad_valid_steps = int(sum((err[f, t.valid[f]] > 0.5).sum() for f in range(t.n_frames)))
+    valid_one_back = float(t.valid[-2].mean())
+    print(f"valid steps with an error above 0.5 px: {bad_valid_steps}; "
+          f"{100 * valid_one_back:.0f} % of the tracks valid one frame back from the end")
+''', "bad_valid_steps == 0 and valid_one_back >= 0.5"),
 ]
 
 NOTEBOOKS["06_lateral_vs_depth"] = [
@@ -559,7 +584,7 @@ For the stereo points that could be tracked back, the in-plane displacement duri
 against the end-state height: do the points that rose the most also move the most? Pearson
 and Spearman coefficients with bootstrap 95 % confidence intervals.
 """),
-    params('track_method = "lk"\n'),
+    params(),
     code(SETUP),
     code(TRACK_SETUP),
     code('''
@@ -584,11 +609,16 @@ directions, maximum shear; with heights from the stereo step, the surface strain
 the out-of-plane gradient (heights taken as the out-of-plane displacement of a surface that was
 flat when polished). Reference: the earliest frame with enough valid tracks.
 """),
-    params('track_method = "lk"\n'),
+    params(),
     code(SETUP),
     code(TRACK_SETUP + '''
-S = tr.strain if tr is not None else {}
-if tr is not None and S:
+S = {}
+if tr is not None:
+    try:
+        S = an.strain()
+    except semlab.StepFailed as exc:  # said once, as the error of the strain step
+        print(exc)
+if S:
     print(f"reference frame {S['ref_frame']}, gauge length {S['gauge_length_um']:.2f} µm")
     print("mean dense E (xx, yy, xy):", np.round([np.nanmean(S["E"][..., 0, 0]), np.nanmean(S["E"][..., 1, 1]),
                                                     np.nanmean(S["E"][..., 0, 1])], 5))
@@ -616,6 +646,21 @@ if S:
 if S and "history" in S:
     ax = plots.strain_history(S["history"], exp.series.cycles)
 '''),
+    md("## Key numbers against the truth (checked on the demo)"),
+    check_demo('''
+from semlab import validation
+if S and exp.truth_dir is not None:
+    GX, GY = np.meshgrid(S["grid_x_px"], S["grid_y_px"])
+    g = np.column_stack([GX.ravel(), GY.ravel()])
+    true = validation.true_track_positions(exp.truth_dir, g)
+    u_true = (true[-1] - true[S["ref_frame"]]) * exp.pixel_size_um
+    u = np.column_stack([S["ux_um"].ravel(), S["uy_um"].ravel()])
+    good = np.all(np.isfinite(u), axis=1) & (S["zncc"].ravel() >= 0.95)
+    dense_rms_um = float(np.sqrt(np.mean((u[good] - u_true[good]) ** 2)))
+    print(f"dense grid: {good.sum()} subsets, displacement RMS error {dense_rms_um * 1000:.1f} nm "
+          f"from reference frame {S['ref_frame']} (largest true displacement "
+          f"{np.abs(u_true).max() * 1000:.0f} nm)")
+''', "good.sum() >= 100 and dense_rms_um < 0.006 and S['ref_frame'] <= exp.frames().__len__() - 2"),
 ]
 
 NOTEBOOKS["08_validation"] = [
@@ -630,7 +675,7 @@ removing the best-fit plane of the difference (the reference plane is a conventi
     params(),
     code(SETUP),
     code('''
-from semlab import pipeline, validation
+from semlab import validation
 truth = exp.truth_dir
 if truth is None:
     print("No truth/ folder: validation needs a synthetic experiment (semlab synth).")
@@ -640,7 +685,7 @@ if truth is None:
 rows = {}
 if truth is not None and exp.stereo is not None:
     for m in (["raw", "refined"] if exp.correspondences() is not None else []) + ["auto"]:
-        r = pipeline.run_stereo(exp, method=m, n_boot=0, progress=False)
+        r = an.stereo(method=m)
         zt = validation.true_height_at(truth, r.pts[:, 0])
         e = validation.height_errors(r.z_um, zt, r.xyz_um[:, :2])
         rows[m] = (r, e)
@@ -650,7 +695,7 @@ if truth is not None and exp.stereo is not None:
     md("## Tracking"),
     code('''
 if truth is not None and exp.series is not None:
-    tr = pipeline.run_tracking(exp, progress=False)
+    tr = an.tracking()
     t = tr.tracks
     true = validation.true_track_positions(truth, t.xy[-1])
     err = np.hypot(*(t.xy - true).transpose(2, 0, 1))
@@ -660,6 +705,12 @@ if truth is not None and exp.series is not None:
         print(f"frame {f}: {v.sum():4d} valid, RMS error {rms:.3f} px, "
               f"valid steps with error > 0.5 px: {(err[f, v] > 0.5).sum()}")
 '''),
+    md("## Key numbers (checked on the demo)"),
+    check_demo('''
+if rows:
+    rmse_nm = {m: e["rmse_um"] * 1000 for m, (r, e) in rows.items()}
+    print("height RMSE (nm):", {m: round(v, 1) for m, v in rmse_nm.items()})
+''', "rmse_nm['raw'] > 5 * rmse_nm['refined'] and rmse_nm['auto'] < 15 and rmse_nm['refined'] < 15"),
 ]
 
 

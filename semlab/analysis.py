@@ -1,0 +1,481 @@
+"""One analysis of one experiment: every step computed once, cached, its result files written.
+
+:class:`Analysis` is what ``semlab run`` executes and what the notebooks call::
+
+    experiment.toml ─► Analysis(experiment, out_dir, config)
+        .stereo()    ─► points3d.csv, calibration.json
+        .heightmap() ─► heightmap.tif/_sigma.tif/.x3p/.gsf/.ply, surface_parameters.csv,
+                        bands.csv                       (seeded by .stereo())
+        .tracking()  ─► tracks.csv, displacements.csv   (seeded by .stereo())
+        .strain()    ─► strain.npz                      (from .tracking())
+
+Each step is a function of the experiment's input files, of the fields of the frozen
+:class:`AnalysisConfig` it depends on and of semlab's own code. Its result is kept in
+``out_dir/.semlab/cache`` under a key made of exactly these, so a step runs once per
+experiment and configuration: ``semlab run`` computes, the notebooks it then executes load the
+cached results, and an interactive re-run after a change recomputes only the steps whose
+inputs changed. Result files are written once, when the step is computed, through a temporary
+name, so a step that fails leaves no partial file. A failed step is cached too (its message),
+so every notebook reports the same error without computing it again.
+
+Without ``out_dir`` no result file is written and the cache lives in the user's cache folder
+(``$XDG_CACHE_HOME/semlab`` or ``~/.cache/semlab``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from ._api import check_keywords
+from .errors import SemlabError
+
+__all__ = ["AnalysisConfig", "Analysis", "StepFailed", "STEPS"]
+
+#: The steps of an analysis, in the order :meth:`Analysis.run` executes them.
+STEPS = ("stereo", "heightmap", "tracking", "strain")
+STEP_FILES = {"stereo": ("points3d.csv", "calibration.json"),
+              "heightmap": ("heightmap.tif", "heightmap_sigma.tif", "heightmap.x3p",
+                            "heightmap.gsf", "heightmap.ply", "surface_parameters.csv",
+                            "bands.csv"),
+              "tracking": ("tracks.csv", "displacements.csv"),
+              "strain": ("strain.npz",)}
+STEREO_METHODS = (None, "raw", "refined", "auto", "merged")
+TRACK_METHODS = ("lk", "subset")
+
+
+class StepFailed(SemlabError):
+    """A step of the analysis could not produce its result (the message says why)."""
+
+
+@dataclass(frozen=True)
+class AnalysisConfig:
+    """Every setting of an analysis, recorded with its results (``calibration.json`` and
+    ``.semlab/config.json``).
+
+    Attributes
+    ----------
+    stereo_method : {None, "raw", "refined", "auto", "merged"}
+        Correspondences for the heights; None: ``merged`` when the experiment has clicked
+        correspondences, else ``auto``.
+    n_boot : int
+        Bootstrap resamples of the height error bars (0: matching σ only).
+    seed : int
+        Seed of the bootstrap.
+    track_method : {"lk", "subset"}
+        Pyramidal Lucas–Kanade or IC-GN subsets for the tracking steps.
+    gauge_length_px : float or None
+        Gauge length of the sparse strain (None: from the track density).
+    """
+
+    stereo_method: str | None = None
+    n_boot: int = 200
+    seed: int = 0
+    track_method: str = "lk"
+    gauge_length_px: float | None = None
+
+    def __post_init__(self):
+        if self.stereo_method not in STEREO_METHODS:
+            raise SemlabError(f"stereo_method = {self.stereo_method!r}: use one of "
+                              "raw, refined, auto, merged (or None)")
+        if self.track_method not in TRACK_METHODS:
+            raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
+        if int(self.n_boot) != self.n_boot or self.n_boot < 0:
+            raise SemlabError(f"n_boot = {self.n_boot!r}: give a whole number >= 0")
+        if self.gauge_length_px is not None and not self.gauge_length_px > 0:
+            raise SemlabError(f"gauge_length_px = {self.gauge_length_px!r}: give a length > 0 "
+                              "in pixels, or None")
+
+    @classmethod
+    def fields(cls):
+        """Names of the settings."""
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def from_dict(cls, d):
+        """A configuration from a dict; unknown keys raise ``TypeError`` naming the nearest."""
+        d = dict(d or {})
+        check_keywords(cls.__name__, d, cls.fields())
+        return cls(**d)
+
+    def replace(self, **changes):
+        """A copy with ``changes``; unknown names raise ``TypeError`` naming the nearest."""
+        check_keywords(f"{type(self).__name__}.replace", changes, self.fields())
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self):
+        return dataclasses.asdict(self)
+
+    def for_step(self, step):
+        """The settings ``step`` depends on (with those of the steps it uses)."""
+        own = {"stereo": ("stereo_method", "n_boot", "seed"), "heightmap": (),
+               "tracking": ("track_method",),
+               "strain": ("gauge_length_px",)}
+        needs = {"stereo": ("stereo",), "heightmap": ("stereo",),
+                 "tracking": ("stereo", "tracking"),
+                 "strain": ("stereo", "tracking", "strain")}
+        return {k: getattr(self, k) for s in needs[step] for k in own[s]}
+
+
+# ------------------------------------------------------------------------------ fingerprints
+def _sha256_file(path, h):
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+
+
+def experiment_fingerprint(exp):
+    """SHA-256 of the experiment's TOML and every input file it names (views, frames,
+    correspondences, lines), in order; the ``truth/`` folder is not an input."""
+    h = hashlib.sha256()
+    paths = [exp.toml_path]
+    if exp.stereo is not None:
+        paths += list(exp.stereo.view_paths)
+        paths += [p for p in (exp.stereo.correspondences_path, exp.stereo.lines_path) if p]
+    if exp.series is not None:
+        paths += list(exp.series.frame_paths)
+    for p in paths:
+        h.update(str(Path(p).name).encode())
+        _sha256_file(p, h)
+    return h.hexdigest()
+
+
+def code_fingerprint():
+    """SHA-256 of semlab's own source files (a change of the code invalidates the cache)."""
+    h = hashlib.sha256()
+    for p in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _user_cache_dir():
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "semlab"
+
+
+# ------------------------------------------------------------------------------ the analysis
+class Analysis:
+    """Run an experiment's analysis steps once each, cache them and write the result files.
+
+    Parameters
+    ----------
+    experiment : str, Path or semlab.experiment.Experiment
+        The experiment folder, its ``experiment.toml``, or a loaded experiment.
+    out_dir : str or Path, optional
+        Folder of the result files and of the step cache (``out_dir/.semlab``). None: no
+        result files; the cache is kept in the user's cache folder.
+    config : AnalysisConfig or dict, optional
+        The settings (default: :class:`AnalysisConfig` defaults).
+    progress : bool
+        Progress bars on long steps.
+    cache_dir : str or Path, optional
+        Where the step cache lives (default: ``out_dir/.semlab/cache``, or the user's cache
+        folder without ``out_dir``). ``semlab run`` writes its result files into a staging
+        folder and keeps the cache in the output folder itself.
+    **changes
+        Settings that replace those of ``config`` (unknown names raise ``TypeError``).
+
+    Attributes
+    ----------
+    experiment : semlab.experiment.Experiment
+    config : AnalysisConfig
+    computed : list of str
+        Steps computed (not loaded from the cache) by this object, in order.
+    warnings : dict
+        Step name → the warnings its computation gave (kept in the cache with the result).
+
+    Examples
+    --------
+    >>> import tempfile, semlab
+    >>> from semlab.synth import make_experiment
+    >>> tmp = tempfile.mkdtemp()
+    >>> exp = make_experiment(tmp + "/exp", seed=3, size=(96, 128), n_frames=3, n_clicks=12,
+    ...                       progress=False)
+    >>> an = semlab.Analysis(exp, tmp + "/out", n_boot=0, progress=False)
+    >>> res = an.stereo()
+    >>> sorted(p.name for p in (an.out_dir).glob("*.csv"))
+    ['points3d.csv']
+    >>> again = semlab.Analysis(exp, tmp + "/out", n_boot=0, progress=False)
+    >>> bool((again.stereo().z_um == res.z_um).all()), again.computed
+    (True, [])
+    """
+
+    def __init__(self, experiment, out_dir=None, config=None, progress=True, cache_dir=None,
+                 **changes):
+        from .experiment import Experiment, load
+
+        self.experiment = experiment if isinstance(experiment, Experiment) else load(experiment)
+        if config is None:
+            config = AnalysisConfig()
+        elif isinstance(config, dict):
+            config = AnalysisConfig.from_dict(config)
+        self.config = config.replace(**changes) if changes else config
+        self.progress = bool(progress)
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self._fingerprint = experiment_fingerprint(self.experiment)
+        self._code = code_fingerprint()
+        if cache_dir is not None:
+            self.cache_dir = Path(cache_dir)
+        elif self.out_dir is None:
+            self.cache_dir = _user_cache_dir() / self._fingerprint[:16]
+        else:
+            self.cache_dir = self.out_dir / ".semlab" / "cache"
+        self._memo = {}
+        self.computed = []
+        self.warnings = {}
+
+    # -------------------------------------------------------------------------- caching
+    def _key(self, step, params):
+        blob = json.dumps({"step": step, "experiment": self._fingerprint, "code": self._code,
+                           "params": params}, sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+    def _log(self, step, key, event, seconds=0.0):
+        if self.out_dir is None:
+            return
+        log = self.cache_dir.parent / "steps.jsonl"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "a", encoding="utf-8") as fh:
+            fh.write(json.dumps({"step": step, "key": key, "event": event,
+                                 "seconds": round(seconds, 3), "pid": os.getpid()}) + "\n")
+
+    def _cached(self, step, params, compute, write=None):
+        """The result of ``step`` for ``params``: from memory, the cache, or ``compute()``;
+        ``write(result, folder)`` writes its result files when it is computed."""
+        key = self._key(step, params)
+        if key in self._memo:
+            return self._unwrap(step, self._memo[key])
+        path = self.cache_dir / f"{step}-{key}.pkl"
+        if path.is_file():
+            try:
+                with open(path, "rb") as fh:
+                    entry = pickle.load(fh)
+            except Exception:  # a truncated or foreign cache file: compute again
+                entry = None
+            if entry is not None:
+                self._memo[key] = entry
+                self._log(step, key, "cached")
+                missing = [f for f in STEP_FILES.get(step, ())
+                           if self.out_dir is not None and not (self.out_dir / f).exists()]
+                if entry[0] == "ok" and write is not None and missing:
+                    self._write_files(step, entry[1], write)  # e.g. deleted by hand
+                return self._unwrap(step, entry)
+        t0 = time.perf_counter()
+        # warnings of a step (e.g. frames where no track is valid) are part of its result:
+        # kept with it, shown once by `semlab run` and in the notebooks (Analysis.warnings)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                entry = ("ok", compute())
+            except SemlabError as exc:
+                entry = ("failed", str(exc))
+        said = list(dict.fromkeys(str(w.message) for w in caught))
+        entry = entry + (said,)
+        if entry[0] == "ok" and write is not None and self.out_dir is not None:
+            self._write_files(step, entry[1], write)
+        self.computed.append(step)
+        self._log(step, key, "computed" if entry[0] == "ok" else "failed",
+                  time.perf_counter() - t0)
+        self._store(path, entry)
+        self._memo[key] = entry
+        return self._unwrap(step, entry)
+
+    def _unwrap(self, step, entry):
+        status, value = entry[:2]
+        if len(entry) > 2 and entry[2]:
+            self.warnings[step] = entry[2]
+        if status == "failed":
+            raise StepFailed(f"step {step!r} failed: {value}")
+        return value
+
+    def _store(self, path, entry):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            pickle.dump(entry, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(tmp, path)
+
+    def _write_files(self, step, result, write):
+        """Write the step's files into a staging folder, then move them into ``out_dir``:
+        a writer that fails half-way leaves nothing that looks like a result."""
+        import shutil
+        import tempfile
+
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{step}-", dir=self.out_dir))
+        try:
+            written = write(result, stage)
+            for p in written:
+                os.replace(p, self.out_dir / Path(p).name)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+
+    # -------------------------------------------------------------------------- the steps
+    @property
+    def has_stereo(self):
+        return self.experiment.stereo is not None
+
+    @property
+    def has_series(self):
+        return self.experiment.series is not None
+
+    def stereo(self, method=None):
+        """Heights of the end-state surface (:class:`semlab.pipeline.StereoResult`).
+
+        Parameters
+        ----------
+        method : {None, "raw", "refined", "auto", "merged"}
+            None: the configured ``stereo_method``. Another method is computed and cached
+            as a variant (for comparisons, e.g. notebook 08) and writes no result file.
+        """
+        from . import pipeline
+
+        exp, cfg = self.experiment, self.config
+        if not self.has_stereo:
+            raise StepFailed(f"{exp.toml_path}: no [stereo] table, so no heights to compute")
+        main = method is None or method == cfg.stereo_method
+        m = cfg.stereo_method if main else method
+        n_boot = cfg.n_boot if main else 0
+        params = dict(cfg.for_step("stereo"), stereo_method=m, n_boot=n_boot)
+
+        def compute():
+            res = pipeline.run_stereo(exp, method=m, n_boot=n_boot, seed=cfg.seed,
+                                      progress=self.progress)
+            res.calibration["analysis_config"] = cfg.as_dict()
+            return res
+
+        return self._cached("stereo" if main else f"stereo_{m}", params, compute,
+                            pipeline.write_stereo_results if main else None)
+
+    def heightmap(self):
+        """The dense height map of views 0 and 1 and the bands measured on it.
+
+        Returns
+        -------
+        (semlab.heightmap.HeightMap, list of semlab.metrology.Band)
+            The bands are the clicked cracks (``crack_id``) and the straight traces found in
+            the map (:func:`semlab.metrology.map_bands`).
+        """
+        from . import heightmap, metrology
+
+        exp = self.experiment
+        if not self.has_stereo:
+            raise StepFailed(f"{exp.toml_path}: no [stereo] table, so no height map")
+
+        def compute():
+            res = self.stereo()
+            hm = heightmap.heightmap_from_stereo(exp, res, progress=self.progress)
+            bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
+                                        pts_px=res.pts[:, 0], crack_id=res.crack_id)
+            return hm, bands
+
+        def write(result, folder):
+            return list(heightmap.write_heightmap_results(result[0], folder,
+                                                          bands=result[1]).values())
+
+        return self._cached("heightmap", self.config.for_step("heightmap"), compute, write)
+
+    def tracking(self):
+        """Tracks and displacements (:class:`semlab.pipeline.TrackingResult`), seeded by
+        Shi–Tomasi corners and by the stereo points when the stereo step succeeds."""
+        from . import pipeline
+
+        exp, cfg = self.experiment, self.config
+        if not self.has_series:
+            raise StepFailed(f"{exp.toml_path}: no [series] table, so nothing to track")
+
+        def compute():
+            stereo = None
+            if self.has_stereo:
+                try:
+                    s = self.stereo()
+                    stereo = (s.pts[:, 0], s.z_um)
+                except StepFailed:
+                    stereo = None  # tracking goes on with corner seeds; the stereo step reports
+            return pipeline.run_tracking(exp, stereo=stereo, method=cfg.track_method,
+                                         progress=self.progress)
+
+        return self._cached("tracking", cfg.for_step("tracking"), compute,
+                            pipeline.write_tracking_results)
+
+    def strain(self):
+        """Sparse and dense strain (dict, see :func:`semlab.pipeline.run_strain`)."""
+        from . import pipeline
+
+        exp, cfg = self.experiment, self.config
+
+        def compute():
+            return pipeline.run_strain(exp, self.tracking(), gauge_length_px=cfg.gauge_length_px,
+                                       progress=self.progress)
+
+        if not self.has_series:
+            raise StepFailed(f"{exp.toml_path}: no [series] table, so no strain")
+        return self._cached("strain", cfg.for_step("strain"), compute,
+                            pipeline.write_strain_results)
+
+    # -------------------------------------------------------------------------- all of it
+    def applicable_steps(self):
+        """The steps this experiment has input for."""
+        stereo_steps = ("stereo", "heightmap")
+        return [s for s in STEPS if (s in stereo_steps and self.has_stereo)
+                or (s not in stereo_steps and self.has_series)]
+
+    def comparison_methods(self):
+        """Stereo methods the reports compare with the configured one: the reference method
+        (raw clicks) and the refined clicks when the experiment has clicks (notebooks 03, 04,
+        08), automatic matching when it has a ``truth/`` folder (notebook 08)."""
+        if not self.has_stereo:
+            return []
+        corr = self.experiment.correspondences()
+        methods = ["raw", "refined"] if corr is not None and len(corr.pts) else []
+        if self.experiment.truth_dir is not None:
+            methods.append("auto")
+        return [m for m in methods if m != self.config.stereo_method]
+
+    def run(self, steps=None):
+        """Run ``steps`` (default: every applicable step) and record their status.
+
+        With the stereo step, the comparison methods of :meth:`comparison_methods` run too
+        (as ``stereo_<method>``), so the notebooks compute nothing.
+
+        Returns
+        -------
+        dict
+            step name → ``"ok"`` or the error message of a failed step. Also written to
+            ``status.json`` with the configuration (``config.json``) beside the cache
+            (``out_dir/.semlab/``).
+        """
+        from tqdm.auto import tqdm
+
+        steps = self.applicable_steps() if steps is None else list(steps)
+        check_keywords("Analysis.run", steps, STEPS)
+        todo = [(s, None) for s in steps]
+        if "stereo" in steps:
+            todo += [("stereo", m) for m in self.comparison_methods()]
+        status = {}
+        for step, method in tqdm(todo, desc="analysis", disable=not self.progress):
+            name = step if method is None else f"{step}_{method}"
+            try:
+                self.stereo(method) if method else getattr(self, step)()
+                status[name] = "ok"
+            except StepFailed as exc:
+                status[name] = str(exc)
+        if self.out_dir is not None:
+            meta = self.cache_dir.parent
+            meta.mkdir(parents=True, exist_ok=True)
+            (meta / "config.json").write_text(json.dumps(self.config.as_dict(), indent=1))
+            (meta / "status.json").write_text(json.dumps(
+                {"status": status, "warnings": self.warnings}, indent=1))
+        return status
+
+    def __repr__(self):
+        return (f"Analysis({self.experiment.name!r}, out_dir={str(self.out_dir)!r}, "
+                f"config={self.config})")

@@ -1,0 +1,100 @@
+"""semlab.analysis: each step once, cached by its inputs and settings, result files written
+by the analysis itself (never half-written)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import semlab
+from semlab import analysis, pipeline
+
+
+@pytest.fixture(scope="module")
+def computed(small_experiment_master, tmp_path_factory):
+    """One analysis of the small experiment, run once for the tests of this module."""
+    out = tmp_path_factory.mktemp("an") / "out"
+    an = semlab.Analysis(small_experiment_master, out, n_boot=0, progress=False)
+    status = an.run()
+    return small_experiment_master, out, an, status
+
+
+def test_run_computes_each_step_once_and_writes_its_files(computed):
+    _, out, an, status = computed
+    assert status["stereo"] == "ok" and status["tracking"] == "ok"
+    assert an.computed.count("stereo") == 1 and an.computed.count("tracking") == 1
+    files = {p.name for p in out.iterdir()}
+    assert {"points3d.csv", "calibration.json", "tracks.csv", "displacements.csv"} <= files
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["analysis_config"]["n_boot"] == 0
+    recorded = json.loads((out / ".semlab" / "status.json").read_text())
+    assert recorded["status"] == status
+
+
+def test_a_second_analysis_loads_everything_from_the_cache(computed):
+    exp, out, an, status = computed
+    again = semlab.Analysis(exp, out, n_boot=0, progress=False)
+    assert again.run() == status
+    assert again.computed == []
+    np.testing.assert_array_equal(again.stereo().z_um, an.stereo().z_um)
+
+
+def test_a_changed_setting_recomputes_only_the_steps_that_depend_on_it(computed):
+    exp, out, an, _ = computed
+    other = semlab.Analysis(exp, out, n_boot=0, track_method="subset", progress=False)
+    other.tracking()
+    assert other.computed == ["tracking"]  # the stereo seeds came from the cache
+
+
+def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,
+                                                                 monkeypatch):
+    calls = []
+
+    def broken(*a, **k):
+        calls.append(1)
+        raise semlab.SemlabError("the tracks are all lost (a test)")
+
+    monkeypatch.setattr(pipeline, "run_tracking", broken)
+    an = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
+    status = an.run(["tracking"])
+    assert "the tracks are all lost" in status["tracking"]
+    with pytest.raises(analysis.StepFailed, match="step 'tracking' failed"):
+        an.tracking()
+    fresh = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
+    with pytest.raises(analysis.StepFailed):
+        fresh.tracking()
+    assert len(calls) == 1  # cached failure: not recomputed by later callers
+    assert not (tmp_path / "out" / "tracks.csv").exists()
+
+
+def test_a_writer_failing_half_way_leaves_no_result_file(small_experiment, tmp_path, monkeypatch):
+    def half(result, folder):
+        (folder / "points3d.csv").write_text("point_id,x_px\n0,")
+        raise OSError("disk full (a test)")
+
+    monkeypatch.setattr(pipeline, "write_stereo_results", half)
+    an = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
+    with pytest.raises(OSError):
+        an.stereo()
+    assert not (tmp_path / "out" / "points3d.csv").exists()
+
+
+def test_config_refuses_unknown_and_impossible_settings():
+    with pytest.raises(TypeError, match="did you mean 'track_method'"):
+        semlab.AnalysisConfig.from_dict({"trackmethod": "lk"})
+    with pytest.raises(semlab.SemlabError, match="track_method"):
+        semlab.AnalysisConfig(track_method="optical")
+    with pytest.raises(semlab.SemlabError, match="n_boot"):
+        semlab.AnalysisConfig(n_boot=-1)
+
+
+def test_the_cache_key_follows_the_input_files(small_experiment, tmp_path):
+    a = semlab.Analysis(small_experiment, tmp_path / "o1", progress=False)
+    csv = small_experiment / "annotations" / "correspondences.csv"
+    csv.write_text(csv.read_text())  # same bytes: same key
+    b = semlab.Analysis(small_experiment, tmp_path / "o1", progress=False)
+    assert a._key("stereo", {}) == b._key("stereo", {})
+    lines = csv.read_text().splitlines()
+    csv.write_text("\n".join(lines[:-1]) + "\n")  # one click fewer: another key
+    c = semlab.Analysis(small_experiment, tmp_path / "o1", progress=False)
+    assert c._key("stereo", {}) != a._key("stereo", {})
