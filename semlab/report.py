@@ -69,6 +69,8 @@ RESULT_FILES = ("experiment_summary.txt", "points3d.csv", "calibration.json", "t
                 "bands.csv", "drift.csv", "index.html", REPORT_CSS)
 #: Where a failed run leaves its partial report (executed notebooks and HTML, no results).
 FAILED_DIR = "failed_run"
+#: The analysis step cache (semlab.analysis), kept between runs into the same folder.
+CACHE_DIR = ".semlab"
 _STAGING_PREFIX = ".semlab-run-"
 _SYSTEM_DIRS = (Path("/proc"), Path("/sys"), Path("/dev"))
 #: Kernel options: no "[IPKernelApp] WARNING | Kernel is running over TCP..." (nor other
@@ -91,7 +93,8 @@ def _owned(path):
 
 def _has_content(out):
     """Entries of ``out`` other than an earlier failed run's partial report."""
-    return [p for p in out.iterdir() if p.name != FAILED_DIR and not p.name.startswith(_STAGING_PREFIX)]
+    return [p for p in out.iterdir() if p.name not in (FAILED_DIR, CACHE_DIR)
+            and not p.name.startswith(_STAGING_PREFIX)]
 
 
 def check_out_dir(out, experiment_root=None, force=False):
@@ -322,7 +325,7 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
         atomic_write_text(stage / "experiment_summary.txt", exp.summary() + "\n")
         # the analysis computes every step once (or loads it from the cache in out/.semlab,
         # which outlives the run) and writes its result files into the staging folder
-        cache_dir = out / ".semlab" / "cache"
+        cache_dir = out / CACHE_DIR / "cache"
         analysis = Analysis(exp, stage, config=config, progress=progress, cache_dir=cache_dir)
         wanted = {s for nb in nbs for s in NOTEBOOK_STEPS.get(nb.name[:2], ())}
         status = analysis.run([s for s in analysis.applicable_steps() if s in wanted])

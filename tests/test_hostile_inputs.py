@@ -461,7 +461,9 @@ def test_force_replaces_results_only_after_success(small_experiment, tmp_path, m
     assert (out / "my_notes.txt").read_text() == "mine"
     assert "stale" not in (out / "01_second.html").read_text()
     assert not (out / "failed_run").exists()
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    # nothing hidden is left but the analysis step cache (kept between runs, holds no result)
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [".semlab"]
+    assert not list((out / ".semlab").glob("*.csv"))
     assert ".semlab-run-" not in (out / "00_write.html").read_text()   # reports name out
     assert checksum(small_experiment) == before
 
@@ -477,7 +479,7 @@ def test_perspective_run_writes_no_points3d(small_experiment, tmp_path, capfd):
     err = capfd.readouterr().err
     assert "04_depth.ipynb failed" in err and "use camera = 'affine'" in err
     assert "IPKernelApp" not in err
-    assert [p.name for p in out.iterdir()] == ["failed_run"]
+    assert sorted(p.name for p in out.iterdir()) == [".semlab", "failed_run"]  # + step cache
     assert not [p for p in (out / "failed_run").iterdir() if p.suffix not in (".ipynb", ".html", ".css")]
     assert checksum(small_experiment) == before
 
