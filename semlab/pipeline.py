@@ -32,6 +32,8 @@ from .errors import GeometryError, SemlabError, SemlabWarning
 AXIS_TOLERANCE_DEG = 0.2
 #: ...and so are larger ones within this many σ of their (half-sample) uncertainty.
 AXIS_SIGNIFICANCE = 3.0
+#: The x-scale check of the tilts (semlab.tiltcheck) needs this many reference-surface points.
+MIN_TILT_CHECK_POINTS = 10
 #: 1σ error assumed for hand clicks that were not refined (pixels).
 RAW_CLICK_SIGMA_PX = 0.5
 
@@ -260,7 +262,9 @@ def surface_heights(pts, tilt_deg, pixel_size_um, sigma_px=None, n_boot=0, seed=
     >>> pts = np.stack([project_affine(np.column_stack([xy, z]), t, 0.03)
     ...                 for t in (-5.0, 5.0)], axis=1)
     >>> h = semlab.surface_heights(pts, [-5.0, 5.0], 0.03, sigma_px=0.02)
-    >>> bool(np.abs((h.z_um - h.z_um.min()) - (z - z.min())).max() < 1e-6)
+    >>> h.reference.method                                      # the flat part is the reference
+    'dominant_plane'
+    >>> bool(np.abs(h.z_um - z).max() < 0.001)                 # within 1 nm of the truth
     True
     >>> round(float(np.median(h.z_err_um)) * 1000, 1)          # nm, from 0.02 px matching
     4.9
@@ -401,7 +405,9 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
 
     Returns
     -------
-    xyz_um (N, 3), z_err_um (N,), ReferenceSurface, tilt_deg (V,), TiltCheck
+    xyz_um (N, 3), z_err_um (N,), ReferenceSurface, tilt_deg (V,), TiltCheck or None
+        (None: fewer than :data:`MIN_TILT_CHECK_POINTS` points on the reference surface, the
+        tilts are not checked)
     """
     from . import tiltcheck
 
@@ -413,6 +419,9 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
                                                  st.reference_points, seed)
         if estimated and _ < 2:
             tilt = tiltcheck.level_tilts(tilt, ref.plane)
+    n_flat = int(np.count_nonzero(ref.inliers))
+    if n_flat < MIN_TILT_CHECK_POINTS:  # a small scene: too few points to measure x-scales
+        return xyz, z_err, ref, np.asarray(tilt, float), None
     chk = tiltcheck.check_tilts(pts, tilt, sigma_px, region=ref.inliers,
                                 pixel_size_um=exp.pixel_size_um,
                                 strict=tilt_source in ("experiment", "metadata"),
@@ -504,8 +513,13 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
     else:
         xyz_3d, z_err, ref, tilt, chk = affine_heights(exp, pts, tilt, tilt_source, sigma_px,
                                                        axis_used, seed)
-        calib["tilt_check"] = chk.to_dict()
-        notes += [chk.message] if chk.message else []
+        if chk is None:
+            calib["tilt_check"] = {"checked": False}
+            notes.append(f"tilts not checked against the views: fewer than "
+                         f"{MIN_TILT_CHECK_POINTS} points on the reference surface")
+        else:
+            calib["tilt_check"] = chk.to_dict()
+            notes += [chk.message] if chk.message else []
     if exp.stereo.camera != "perspective" and n_boot:
         sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
                                              seed=seed, tilt_axis_deg=axis_used,

@@ -142,9 +142,7 @@ def test_contradicting_tilts_refused_with_the_estimate(tmp_path):
     with pytest.warns(UserWarning, match="overrides the image metadata 5"):
         exp = _set_stereo_keys(exp, tilt_deg="[-5.0, 45.0]")
     with pytest.raises(GeometryError, match=r"tilt_deg = \[-5.0, 45.0\] contradicts") as e:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+        pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
     import re
 
     assert "experiment.toml" in str(e.value)
@@ -156,11 +154,9 @@ def test_contradicting_tilts_refused_with_the_estimate(tmp_path):
 
 def test_reference_region_recorded_in_calibration(tmp_path):
     exp = _make(tmp_path, seed=5, size=(160, 200), write_block=False, n_clicks=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
-        exp_r = _set_stereo_keys(exp, reference_region="[0, 0, 100, 160]")
-        res_r = pipeline.run_stereo(exp_r, method="auto", n_boot=0, progress=False)
+    res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+    exp_r = _set_stereo_keys(exp, reference_region="[0, 0, 100, 160]")
+    res_r = pipeline.run_stereo(exp_r, method="auto", n_boot=0, progress=False)
     rs = res.calibration["reference_surface"]
     assert rs["method"] == "dominant_plane" and rs["n_inliers"] >= 10
     assert res.calibration["tilt_check"]["consistent"]
