@@ -728,12 +728,21 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False):
     if exp.stereo.camera == "perspective":
         notes.append("camera = perspective: the map uses a linear (affine) height model "
                      "fitted to the triangulated points")
-    model = height_model_from_points(stereo.pts[:, :2], stereo.z_um)
+    try:
+        model = height_model_from_points(stereo.pts[:, :2], stereo.z_um)
+        notes.append(f"height model fitted to {len(stereo.pts)} points, residual "
+                     f"{model.rms_um * 1e3:.2g} nm")
+    except GeometryError:
+        # too few points to fit: the tilts' closed form, above the plane z = 0 of the
+        # camera model rather than the points' reference plane
+        cx = (np.shape(views[0])[1] - 1) / 2.0
+        model = height_model_from_tilts(stereo.tilt_deg[0], stereo.tilt_deg[1],
+                                        exp.pixel_size_um, cx)
+        notes.append(f"only {len(stereo.pts)} points: heights from the tilts above the "
+                     "camera model's z = 0 plane, not the points' reference plane")
     hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
                        seeds=stereo.pts[:, :2], params=params, model=model, progress=progress)
     hm.notes.extend(notes)
-    hm.notes.append(f"height model fitted to {len(stereo.pts)} points, residual "
-                    f"{model.rms_um * 1e3:.2g} nm")
     return hm
 
 

@@ -226,3 +226,18 @@ def test_smoothing_prior_averages_noise_but_keeps_steps():
     prof = np.median(sm[10:50], axis=0)
     assert np.sum((prof > 0.05) & (prof < 0.45)) <= 2          # the step stays sharp
     assert abs(prof[30] - 0.0) < 0.02 and abs(prof[60] - 0.5) < 0.02
+
+
+def test_heightmap_from_stereo_with_too_few_points_uses_the_tilts(scene_pair):
+    from types import SimpleNamespace
+
+    i0, i1, tx, sc = scene_pair
+    exp = SimpleNamespace(views=lambda: [i0, i1], pixel_size_um=sc.pixel_size_um,
+                          stereo=SimpleNamespace(camera="affine"))
+    pts = np.array([[[30.0, 30.0], [30.5, 30.0]], [[90.0, 40.0], [90.2, 40.0]],
+                    [[60.0, 80.0], [59.8, 80.0]], [[110.0, 90.0], [110.1, 90.0]],
+                    [[40.0, 70.0], [40.3, 70.0]]])
+    stereo = SimpleNamespace(pts=pts, z_um=np.zeros(5), tilt_deg=np.array([-5.0, 5.0]))
+    res = hm.heightmap_from_stereo(exp, stereo)
+    assert res.model.source == "tilts" and any("only 5 points" in n for n in res.notes)
+    assert res.valid.mean() > 0.5
