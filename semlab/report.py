@@ -254,7 +254,7 @@ def _keep_failed(stage, out):
     """A failed run: drop its result files, keep its reports as ``out/failed_run/``."""
     for p in list(stage.iterdir()):
         if not (re.match(r"^\d\d_.*\.(ipynb|html)$", p.name) or p.name == REPORT_CSS):
-            _remove(p)          # (report.css too: the partial pages are read unstyled)
+            _remove(p)
     failed = out / FAILED_DIR
     _remove(failed)
     os.replace(stage, failed)
