@@ -391,8 +391,8 @@ if res is not None:
     rs = res.calibration["reference_surface"]
     print(f"reference: {rs['method']}, {rs['n_inliers']} of {rs['n_points']} points, residual "
           f"RMS {rs['residual_rms_um'] * 1000:.1f} nm, 5-95 % spread {rs['spread_5_95_um'] * 1000:.1f} nm")
-    plots.show_reference_surface(exp.views()[0], res.pts[:, 0], res.z_um, res.reference.inliers,
-                                 ax=plt.subplots(figsize=(8, 5.5))[1])
+    ax = plots.show_reference_surface(exp.views()[0], res.pts[:, 0], res.z_um, res.reference.inliers)
+    plots.show_static(ax.figure, dpi=100, fmt="jpeg")  # SEM image: JPEG keeps the report small
 '''),
     md("## x–z and y–z projections, with 1σ error bars"),
     code('''
@@ -447,11 +447,12 @@ if res is not None:
           f"(σ scale {hm.parallax.sigma_scale:.2f} from the map itself)")
     for n in hm.notes:
         print("note:", n)
-    plots.show_heightmap_panels(hm.z_um, hm.sigma_um, exp.pixel_size_um)
+    plots.show_static(plots.show_heightmap_panels(hm.z_um, hm.sigma_um, exp.pixel_size_um),
+                      fmt="jpeg")
 '''),
     code('''
 if hm is not None:
-    plots.show_hillshade(hm.z_um, exp.pixel_size_um)
+    plots.show_static(plots.show_hillshade(hm.z_um, exp.pixel_size_um).figure, fmt="jpeg")
 '''),
     md("## Areal parameters (ISO 25178-2, `surfalize`) and profiles across the bands"),
     code('''
@@ -459,7 +460,8 @@ if hm is not None:
     for r in metrology.surface_parameters(hm.z_um, exp.pixel_size_um):
         print(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()))
     profs = [metrology.band_profile(hm.z_um, hm.sigma_um, exp.pixel_size_um, b) for b in bands]
-    plots.show_bands(hm.z_um, bands, pixel_size_um=exp.pixel_size_um)
+    plots.show_static(plots.show_bands(hm.z_um, bands, pixel_size_um=exp.pixel_size_um).figure,
+                      fmt="jpeg")
     if profs:
         plots.plot_band_profiles(profs[:6])
 '''),
