@@ -348,12 +348,24 @@ class Analysis:
 
         def compute():
             res = pipeline.run_stereo(exp, method=m, n_boot=n_boot, seed=cfg.seed,
-                                      progress=self.progress)
+                                      progress=self.progress, tilt_matches=self.tilt_matches())
             res.calibration["analysis_config"] = cfg.as_dict()
             return res
 
         return self._cached("stereo" if main else f"stereo_{m}", params, compute,
                             pipeline.write_stereo_results if main else None)
+
+    def tilt_matches(self):
+        """Matches for the tilt estimation (3+ views without given tilts), computed once for
+        every stereo method; None where the tilts are given or there are two views."""
+        from . import pipeline
+
+        st = self.experiment.stereo
+        if st is None or st.tilt_deg is not None or len(st.view_paths) < 3:
+            return None
+        return self._cached("tilt_matches", {},
+                            lambda: pipeline.match_for_tilts(self.experiment,
+                                                             progress=self.progress))
 
     def heightmap(self):
         """The dense height map of views 0 and 1 and the bands measured on it.

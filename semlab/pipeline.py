@@ -351,12 +351,24 @@ def vanishing_summary(lines):
     return d, cal
 
 
-def choose_tilts(exp, pts, lines_cal=None, progress=True):
+def match_for_tilts(exp, progress=True):
+    """Matches for the tilt estimation of 3+ views: square subsets, the middle view as the
+    matching reference (see :func:`choose_tilts`). Returns (M, V, 2) valid matches, pixels."""
+    from . import matching
+
+    v = len(exp.stereo.view_paths)
+    m = matching.auto_match(exp.views(), ref_view=(v - 1) // 2, band_aware=False,
+                            progress=progress)
+    return m.pts[m.valid]
+
+
+def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None):
     """The stage tilt of each view and where it came from.
 
     Order of preference: experiment.toml, the images' SEM metadata, estimation from 3+ views
-    (:func:`semlab.reconstruct.estimate_tilts`), the vanishing-point relative rotation (for
-    two views, split symmetrically about 0°: only the difference is observable).
+    (:func:`semlab.reconstruct.estimate_tilts` on ``tilt_matches``, by default
+    :func:`match_for_tilts`), the vanishing-point relative rotation (for two views, split
+    symmetrically about 0°: only the difference is observable).
 
     Returns
     -------
@@ -378,11 +390,9 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True):
         # biases, alike in both, cancel in the metric upgrade. With the first view as
         # reference the middle tilt came out 0.08-0.18° off on synthetic -5/0/+5° scenes;
         # with the middle one 0.04-0.06° (benchmarks/stereo_accuracy.py).
-        from . import matching
-
-        m = matching.auto_match(exp.views(), ref_view=(v - 1) // 2, band_aware=False,
-                                progress=progress)
-        tilt_pts = m.pts[m.valid] if m.valid.sum() >= 20 else pts
+        if tilt_matches is None:
+            tilt_matches = match_for_tilts(exp, progress=progress)
+        tilt_pts = tilt_matches if len(tilt_matches) >= 20 else pts
         est = reconstruct.estimate_tilts(tilt_pts, exp.pixel_size_um, progress=progress)
         return np.asarray(est.tilt_deg), "estimated", np.asarray(est.tilt_sigma_deg)
     if lines_cal is not None:
@@ -430,7 +440,8 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
 
 
 @strict_keywords
-def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=None, auto_kw=None):
+def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=None, auto_kw=None,
+               tilt_matches=None):
     """Heights of the end-state surface from the experiment's views.
 
     Parameters
@@ -445,6 +456,10 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
     refine_kw, auto_kw : dict, optional
         Keyword arguments of :func:`semlab.matching.refine_correspondences` and
         :func:`semlab.matching.auto_match` (unknown names raise ``TypeError``).
+    tilt_matches : (M, V, 2) array, optional
+        Matches for the tilt estimation of 3+ views without given tilts (default: computed
+        by :func:`match_for_tilts`; :class:`semlab.Analysis` computes them once for every
+        stereo method).
 
     Returns
     -------
@@ -483,7 +498,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                      "coordinates rotated")
     else:
         axis_used = 90.0
-    tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress)
+    tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress,
+                                                 tilt_matches=tilt_matches)
     # raw clicks carry no matching estimate: assume the typical hand-click error
     sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
     if exp.stereo.camera == "perspective":

@@ -98,3 +98,18 @@ def test_the_cache_key_follows_the_input_files(small_experiment, tmp_path):
     csv.write_text("\n".join(lines[:-1]) + "\n")  # one click fewer: another key
     c = semlab.Analysis(small_experiment, tmp_path / "o1", progress=False)
     assert c._key("stereo", {}) != a._key("stereo", {})
+
+
+def test_tilt_matches_of_three_views_are_computed_once_for_every_method(tmp_path):
+    from semlab.synth import make_experiment
+
+    exp = make_experiment(tmp_path / "exp", seed=0, size=(128, 160), tilts_deg=(-5.0, 0.0, 5.0),
+                          tilt_in_toml=False, tilt_in_metadata=False, write_block=False,
+                          n_frames=0, n_clicks=12, progress=False)
+    an = semlab.Analysis(exp, tmp_path / "out", n_boot=0, progress=False)
+    merged, raw = an.stereo(), an.stereo(method="raw")
+    assert merged.tilt_source == raw.tilt_source == "estimated"
+    # the same tilt matches: the same tilt steps (the common offset levels each method's own
+    # reference surface)
+    np.testing.assert_allclose(np.diff(merged.tilt_deg), np.diff(raw.tilt_deg), atol=1e-9)
+    assert an.computed.count("tilt_matches") == 1
