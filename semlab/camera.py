@@ -99,3 +99,11 @@ def rotation_about_axis(axis, angle_rad):
     a = a / np.linalg.norm(a)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
     return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+
+
+def _check_pixel_size(pixel_size_um):
+    if pixel_size_um is None or not np.isfinite(pixel_size_um) or pixel_size_um <= 0:
+        raise GeometryError(
+            f"pixel_size_um must be a positive number (µm/px), got {pixel_size_um!r}; read it "
+            "from the SEM file or give it in experiment.toml")
+    return float(pixel_size_um)
