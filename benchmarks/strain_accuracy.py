@@ -3,7 +3,7 @@
 Run:  python benchmarks/strain_accuracy.py
 
 semlab.synth makes a frontal series whose displacement from the first to the last frame is a
-uniform small strain (no slip bands); semlab.pipeline.run_tracking tracks it backwards, semlab.pipeline.run_strain and
+uniform small strain (no slip bands); semlab.series.run_tracking tracks it backwards, semlab.series.run_strain and
 derives the strain (dense IC-GN grid, Delaunay triangles, local least squares). The table
 compares the median Green–Lagrange strain with the truth (truth/fields.npz), for several
 seeds (scenes). The sparse methods use the Shi–Tomasi-seeded tracks valid from the reference
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semlab import experiment, pipeline, synth, validation
+from semlab import experiment, series, synth, validation
 
 
 def run(strain=(0.02, -0.01, 0.008), method="lk", seed=0):
@@ -31,8 +31,8 @@ def run(strain=(0.02, -0.01, 0.008), method="lk", seed=0):
         exp = experiment.load(toml)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            r = pipeline.run_tracking(exp, method=method, progress=False)
-            S = pipeline.run_strain(exp, r)
+            r = series.run_tracking(exp, method=method, progress=False)
+            S = series.run_strain(exp, r)
         f = validation.load_fields(exp.root)
         # U(x) = E x (end-state coordinates); frame r holds x - (1 - f_r) E x, so the deformation
         # from the pipeline's reference frame r to the end is F = (I - (1 - f_r) E)^-1 exactly

@@ -396,9 +396,9 @@ class Analysis:
         return self._cached("heightmap", self.config.for_step("heightmap"), compute, write)
 
     def tracking(self):
-        """Tracks and displacements (:class:`semlab.pipeline.TrackingResult`), seeded by
+        """Tracks and displacements (:class:`semlab.series.TrackingResult`), seeded by
         Shi–Tomasi corners and by the stereo points when the stereo step succeeds."""
-        from . import pipeline
+        from . import series
 
         exp, cfg = self.experiment, self.config
         if not self.has_series:
@@ -412,26 +412,26 @@ class Analysis:
                     stereo = (s.pts[:, 0], s.z_um)
                 except StepFailed:
                     stereo = None  # tracking goes on with corner seeds; the stereo step reports
-            return pipeline.run_tracking(exp, stereo=stereo, method=cfg.track_method,
+            return series.run_tracking(exp, stereo=stereo, method=cfg.track_method,
                                          progress=self.progress)
 
         return self._cached("tracking", cfg.for_step("tracking"), compute,
-                            pipeline.write_tracking_results)
+                            series.write_tracking_results)
 
     def strain(self):
-        """Sparse and dense strain (dict, see :func:`semlab.pipeline.run_strain`)."""
-        from . import pipeline
+        """Sparse and dense strain (dict, see :func:`semlab.series.run_strain`)."""
+        from . import series
 
         exp, cfg = self.experiment, self.config
 
         def compute():
-            return pipeline.run_strain(exp, self.tracking(), gauge_length_px=cfg.gauge_length_px,
+            return series.run_strain(exp, self.tracking(), gauge_length_px=cfg.gauge_length_px,
                                        progress=self.progress)
 
         if not self.has_series:
             raise StepFailed(f"{exp.toml_path}: no [series] table, so no strain")
         return self._cached("strain", cfg.for_step("strain"), compute,
-                            pipeline.write_strain_results)
+                            series.write_strain_results)
 
     # -------------------------------------------------------------------------- all of it
     def applicable_steps(self):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import semlab
-from semlab import analysis, pipeline
+from semlab import analysis, pipeline, series
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experimen
         calls.append(1)
         raise semlab.SemlabError("the tracks are all lost (a test)")
 
-    monkeypatch.setattr(pipeline, "run_tracking", broken)
+    monkeypatch.setattr(series, "run_tracking", broken)
     an = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
     status = an.run(["tracking"])
     assert "the tracks are all lost" in status["tracking"]

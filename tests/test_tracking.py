@@ -323,7 +323,7 @@ def test_run_tracking_writes_drift_and_removes_the_rigid_motion(tmp_path):
     with the undrifted run while its raw columns carry the drift."""
     from semlab.displacement import DISPLACEMENTS_CSV_COLUMNS
     from semlab.experiment import load
-    from semlab.pipeline import run_tracking, write_tracking_results
+    from semlab.series import run_tracking, write_tracking_results
     from semlab.registration import read_drift_csv
     from semlab.synth import _stage_matrix, make_experiment
 
