@@ -200,8 +200,10 @@ def _make_workspace(tmp_path):
         if cell["cell_type"] == "code":
             cell["outputs"], cell["execution_count"] = [], None
         if "parameters" in cell.get("metadata", {}).get("tags", []):
-            cell["source"] = (f"experiment = {str(exp)!r}\nout_dir = None\n"
-                              f"review_auto = False\n")
+            # keep every default of the cell (config, cache_dir, ...), override these
+            src = "".join(cell["source"]) if isinstance(cell["source"], list) else cell["source"]
+            cell["source"] = (src + f"\nexperiment = {str(exp)!r}\nout_dir = None\n"
+                              f"cache_dir = {str(tmp_path / 'cache')!r}\nreview_auto = False\n")
             n_param += 1
     assert n_param == 1, f"{NOTEBOOK.name} must have one cell tagged 'parameters'"
     (served / NOTEBOOK.name).write_text(json.dumps(nb, indent=1), encoding="utf-8")
