@@ -57,7 +57,9 @@ one-line change there.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
+import inspect
 import tempfile
 import time
 import warnings
@@ -141,15 +143,18 @@ class Heights:
 def semlab_variants():
     """(point set, method, matching keywords) of the semlab rows: fixed subsets, and the
     information-sized (adaptive) subsets where this semlab has them."""
-    import inspect
-
     from semlab import matching
 
-    out = [("clicks", "refined", {}), ("auto", "auto", {})]
-    if "target_sigma_px" in inspect.signature(matching.auto_match).parameters:
-        out += [("clicks adaptive", "refined", {"refine": {"target_sigma_px": 0.05}}),
-                ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05}})]
-    return out
+    params = getattr(matching, "AutoMatchParams", None)
+    names = set(inspect.signature(matching.auto_match).parameters)
+    if params is not None:
+        names |= {f.name for f in dataclasses.fields(params)}
+    if "target_sigma_px" not in names:
+        return [("clicks", "refined", {}), ("auto", "auto", {})]
+    fixed = {"target_sigma_px": None}  # refine_correspondences may size subsets by default
+    return [("clicks", "refined", {"refine": fixed}), ("auto", "auto", {"auto": fixed}),
+            ("clicks adaptive", "refined", {"refine": {"target_sigma_px": 0.05}}),
+            ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05}})]
 
 
 def semlab_heights(exp, method, **match_kw):
@@ -157,7 +162,11 @@ def semlab_heights(exp, method, **match_kw):
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False, **match_kw)
+        if "refine_kw" in inspect.signature(pipeline.run_stereo).parameters:
+            kw = {"refine_kw": match_kw.get("refine"), "auto_kw": match_kw.get("auto")}
+        else:  # before 2026-12-01 18:00: run_stereo(..., refine={...}, auto={...})
+            kw = match_kw
+        res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False, **kw)
     corr = exp.correspondences()
     n = len(corr.pts) if (method == "refined" and corr is not None) else 0
     return Heights(res.pts[:, :2], np.asarray(res.z_err_um, float), n,
@@ -292,7 +301,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
         crb = float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
         refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
         df = refs["DeepFlow"]["rmse"]
-        label = f"semlab {method}" + (" adaptive" if match_kw else "")
+        label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else "")
         own = [] if sem is None else [(label, sem)]
         for name, r in own + list(refs.items()):
             rows.append({"set": set_name, "method": name, "cov": cov, "df_ratio": r["rmse"] / df,
