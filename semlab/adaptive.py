@@ -15,9 +15,11 @@ function is chosen by what the information supports:
   chi-square scatter of the residual variance (three standard deviations of
   ``sqrt(2 / dof)``), otherwise the model would bias the match and the subset grows.
 
-Points that do not reach the target with the largest subset keep their best match (the
-smallest predicted error), ``target_met = False`` and a reason; they are never dropped
-silently. Each point reports its subset half size, so the caller can give its spatial
+A subset whose residual exceeds what the measured noise explains (by more than the same
+chi-square scatter) does not fit its shape function (curved parallax, a step): it never
+counts as reaching the target. Points that do not reach the target with the largest
+subset keep their best match (the smallest predicted error, a fitting one if any),
+``target_met = False`` and a reason; they are never dropped silently. Each point reports its subset half size, so the caller can give its spatial
 resolution ``(2 h + 1) × pixel_size_um``.
 """
 
@@ -128,6 +130,7 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     hw = np.zeros(n, int)
     shape = np.full(n, "", dtype=object)
     met = np.zeros(n, bool)
+    best_fits = np.zeros(n, bool)
     todo = np.arange(n)
     guess = pg.copy()
     for h in hs:
@@ -141,25 +144,26 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             cand.append(("translation", icgn_refine(
                 ref, cur, pr[todo], guess[todo], half_window=h, warp="translation",
                 init_warp=iw[todo], **kw)))
-        if warp == "auto":
-            ra, rt = cand[0][1], cand[1][1]
-            dof = (2 * h + 1) ** 2 - 6
-            fits = rt.residual_ratio <= ra.residual_ratio + 3 * np.sqrt(2.0 / dof)
-            cand[1] = ("translation", _mask_result(rt, ~(fits | ~ra.converged)))
+        dof = (2 * h + 1) ** 2 - 6
+        scatter = 3 * np.sqrt(2.0 / dof)     # chi-square scatter of a residual variance
         for name, r in cand:
-            # a subset whose residual exceeds the noise by more than the chi-square scatter
-            # does not fit its shape function (curved parallax, a step): not accepted
-            dof = (2 * h + 1) ** 2 - 6
-            r = _mask_result(r, r.converged & ~(r.residual_ratio <= 1 + 3 * np.sqrt(2.0 / dof)),
-                             "subset does not fit its shape function (residual above noise)")
+            # a subset whose residual exceeds the noise by more than the scatter does not
+            # fit its shape function (curved parallax, a step); a translation must fit as
+            # well as the affine fit: such a match is only a fallback, never "target met"
+            fits = r.converged & (r.residual_ratio <= 1 + scatter)
+            if name == "translation" and warp == "auto":
+                ra = cand[0][1]
+                fits &= ~ra.converged | (r.residual_ratio <= ra.residual_ratio + scatter)
             s = np.where(r.converged, np.nanmax(r.sigma_px, axis=1, initial=-np.inf), np.inf)
             s = np.where(np.isnan(s), np.inf, s)
-            ok_now = s <= target_sigma_px
-            # the first acceptable shape function at this size wins (affine first)
-            better = (s < best_sig[todo]) & ~met[todo] | (ok_now & ~met[todo])
+            ok_now = (s <= target_sigma_px) & fits
+            bf = best_fits[todo]
+            better = ~met[todo] & (ok_now | (fits & (~bf | (s < best_sig[todo])))
+                                   | (~fits & ~bf & (s < best_sig[todo])))
             k = np.flatnonzero(better)
             best = _assign(best, todo[k], r, k)
             best_sig[todo[k]] = s[k]
+            best_fits[todo[k]] = fits[k]
             hw[todo[k]] = h
             shape[todo[k]] = name
             met[todo[k]] |= ok_now[k]
@@ -172,21 +176,13 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     reason = np.array(best.reason, dtype=object)
     miss = conv & ~met
     for i in np.flatnonzero(miss):
-        reason[i] = f"{TARGET_MISSED} (sigma {best_sig[i]:.3f} px at h={hw[i]})"
+        reason[i] = f"{TARGET_MISSED} (sigma {best_sig[i]:.3f} px at h={hw[i]}" + (
+            ")" if best_fits[i] else "; its residual exceeds the noise: shape misfit)")
     hw[~conv] = 0
     shape[~conv] = ""
     best = replace(best, reason=reason.astype(str) if n else best.reason)
     return AdaptiveResult(subset=best, half_window=hw, shape_function=shape.astype(str),
                           target_met=met, target_sigma_px=float(target_sigma_px))
-
-
-def _mask_result(r, bad, why="translation misfit (held gradient does not fit)"):
-    """A copy of r with rows ``bad`` marked not converged (misfit)."""
-    if not np.any(bad):
-        return r
-    conv = r.converged & ~bad
-    reason = np.where(bad & r.converged, why, r.reason)
-    return replace(r, converged=conv, reason=reason)
 
 
 def _empty(n, noise_sigma):

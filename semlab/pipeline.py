@@ -478,6 +478,11 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
     notes = []
     calib = {"pixel_size_um": exp.pixel_size_um, "pixel_size_source": exp.pixel_size_source,
              "camera": exp.stereo.camera, "method": method, "n_points": int(len(pts))}
+    if method in ("auto", "merged"):   # the one parameter object of automatic matching
+        from dataclasses import asdict
+
+        from .matching import AutoMatchParams
+        calib["auto_match_params"] = asdict(AutoMatchParams(**match_kw.get("auto", {})))
     epi = epipolar_summary(pts)
     calib["epipolar"] = epi
     lines = exp.lines()

@@ -422,3 +422,17 @@ def test_auto_match_params_recorded_and_checked(stereo):
         auto_match(ims, {"spacing_px": 4}, progress=False)
     with pytest.raises(Exception):
         p.spacing_px = 4          # frozen
+
+
+def test_roughness_stage_removes_steep_flank_matches():
+    """The roughness filter earns its place: without it, matches on steep ribbon flanks
+    (parallax not locally planar) double the gross height errors."""
+    sc = Scene(seed=4, edge_um=0.08, band_angle_deg=-40.0)
+    ims = [sc.render(TILTS[0], noise=0.05, seed=1), sc.render(TILTS[1], noise=0.05, seed=2)]
+    n_bad = {}
+    for name, kw in (("on", {}), ("off", dict(max_roughness_px=None))):
+        v = auto_match(ims, spacing_px=8, progress=False, band_aware=False, **kw).only_valid()
+        x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
+        err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+        n_bad[name] = int((np.abs(err) > 0.03).sum())
+    assert n_bad["off"] > 1.5 * n_bad["on"]

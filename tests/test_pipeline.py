@@ -29,6 +29,9 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     zt = validation.true_height_at(exp.truth_dir, res.pts[:, 0])
     err = validation.height_errors(res.z_um, zt, res.xyz_um[:, :2])
     assert err["n"] >= 1000 and err["rmse_um"] < 0.010
+    # the automatic matcher's one parameter object is recorded
+    assert res.calibration["auto_match_params"]["spacing_px"] == 8
+    assert res.calibration["auto_match_params"]["min_zncc"] == 0.9
 
 
 def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path):
