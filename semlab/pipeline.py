@@ -482,7 +482,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         from dataclasses import asdict
 
         from .matching import AutoMatchParams
-        calib["auto_match_params"] = asdict(AutoMatchParams(**match_kw.get("auto", {})))
+        calib["auto_match_params"] = asdict(AutoMatchParams(**(auto_kw or {})))
     epi = epipolar_summary(pts)
     calib["epipolar"] = epi
     lines = exp.lines()
