@@ -18,7 +18,8 @@ function is chosen by what the information supports:
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
 counts as reaching the target. Points that do not reach the target with the largest
-subset keep their best match (the smallest predicted error, a fitting one if any),
+subset keep their best match (the smallest predicted error among the fitting ones, else
+the smallest subset that converged: misfit grows with the subset),
 ``target_met = False`` and a reason; they are never dropped silently. Each point reports its subset half size, so the caller can give its spatial
 resolution ``(2 h + 1) × pixel_size_um``.
 """
@@ -159,7 +160,8 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             ok_now = (s <= target_sigma_px) & fits
             bf = best_fits[todo]
             better = ~met[todo] & (ok_now | (fits & (~bf | (s < best_sig[todo])))
-                                   | (~fits & ~bf & (s < best_sig[todo])))
+                                   | (~fits & ~bf & ~np.isfinite(best_sig[todo])
+                                      & np.isfinite(s)))
             k = np.flatnonzero(better)
             best = _assign(best, todo[k], r, k)
             best_sig[todo[k]] = s[k]
