@@ -50,8 +50,17 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .camera import image_center, project_perspective, rotation_about_axis
+from .camera import image_center
 from .errors import SemlabError
+from .synth_block import (BOX_DIMS, GRID_FRACTIONS, _box_geometry, block_camera,  # noqa: F401
+                          render_block)
+from .synth_drift import (DRIFT_TRUTH_COLUMNS, _scan_offset, _stage_matrix,  # noqa: F401
+                          drift_pixel_map, drifted_positions, stage_drift)
+from .synth_texture import (NOISE_LEVELS, TEXTURES, _TEXTURE_PARAMS, Detector,  # noqa: F401
+                            _make_texture, _slip_lines, as_detector, detect, to_uint16)
+
+# Texture regimes and the detector (synth_texture), stage drift (synth_drift) and the
+# calibration block (synth_block) live in their own modules; every name stays importable here.
 
 # ---------------------------------------------------------------------------------------------
 # The scene
@@ -141,26 +150,6 @@ class Scene:
         return 1.0 + grain + contrast * fine
 
 
-#: Texture regimes of :func:`make_scene` (see the module docstring).
-TEXTURES = ("speckle", "polished", "featureless")
-
-#: Per-regime texture parameters: particle density (image px² per particle; None: no particles),
-#: particle amplitude range, fine-texture amplitude and correlation length (image px), grain
-#: contrast (±), mean grain area (µm²), slip-line contrast (0: none).
-_TEXTURE_PARAMS = {
-    "speckle": dict(px_per_particle=500, particle_amp=(0.5, 1.0), fine_amp=0.10, fine_corr_px=1.3,
-                    grain_contrast=0.08, grain_area_um2=16.0, slip_line_amp=0.0),
-    "particles": dict(px_per_particle=1500, particle_amp=(0.5, 1.0), fine_amp=0.0, fine_corr_px=1.3,
-                      grain_contrast=0.0, grain_area_um2=16.0, slip_line_amp=0.0),
-    "polished": dict(px_per_particle=6000, particle_amp=(0.3, 0.8), fine_amp=0.06,
-                     fine_corr_px=1.5, grain_contrast=0.03, grain_area_um2=40.0,
-                     slip_line_amp=0.08),
-    "featureless": dict(px_per_particle=None, particle_amp=(0.0, 0.0), fine_amp=0.0,
-                        fine_corr_px=1.3, grain_contrast=0.0, grain_area_um2=16.0,
-                        slip_line_amp=0.0),
-}
-
-
 def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0, n_bands=6,
                amplitude_um=(0.05, 0.3), n_cracks=1, slip_um=0.15, uniform_strain=(0.0, 0.0, 0.0),
                flat=False, texture="speckle"):
@@ -232,88 +221,6 @@ def make_scene(seed=0, size=(384, 512), pixel_size_um=0.03, band_angle_deg=35.0,
         uniform_strain=tuple(float(v) for v in uniform_strain), slip_x_fraction=0.15,
         extent_um=extent, texture_step_um=step, texture=tex, particles_um=particles,
         pixel_size_um=s, texture_kind=kind)
-
-
-def _make_texture(rng, extent, step, s, kind, bands):
-    """Spline coefficients of (fine texture + particles + slip lines, grain contrast) on a raster.
-
-    ``bands`` = (angle_deg, offsets_um, widths_um) places the slip lines of ``"polished"``.
-    The random draws of ``"speckle"`` are in the order of the original generator, so a seed
-    gives the same images as before the regimes existed.
-    """
-    par = _TEXTURE_PARAMS[kind]
-    xmin, xmax, ymin, ymax = extent
-    nx = int(np.ceil((xmax - xmin) / step)) + 1
-    ny = int(np.ceil((ymax - ymin) / step)) + 1
-    area_px = (xmax - xmin) * (ymax - ymin) / s ** 2
-    n_part = int(area_px / par["px_per_particle"]) if par["px_per_particle"] else 0
-    particles = np.column_stack([rng.uniform(xmin + 1, xmax - 1, n_part),
-                                 rng.uniform(ymin + 1, ymax - 1, n_part)])
-    sig = rng.uniform(1.0, 1.8, n_part) * s / step  # raster px
-    amp = rng.uniform(*par["particle_amp"], n_part)
-    fine = np.zeros((ny, nx))
-    if par["fine_amp"]:
-        # band-limited surface texture: white noise smoothed to the correlation length
-        fine = ndimage.gaussian_filter(rng.standard_normal((ny, nx)), par["fine_corr_px"] * s / step)
-        fine *= par["fine_amp"] / fine.std()
-    # particles, drawn analytically
-    rr = np.arange(ny)
-    cc = np.arange(nx)
-    for (px, py), sg, a in zip(particles, sig, amp):
-        c0, r0 = (px - xmin) / step, (py - ymin) / step
-        r_lo, r_hi = int(max(r0 - 5 * sg, 0)), int(min(r0 + 5 * sg + 1, ny))
-        c_lo, c_hi = int(max(c0 - 5 * sg, 0)), int(min(c0 + 5 * sg + 1, nx))
-        gr = np.exp(-0.5 * ((rr[r_lo:r_hi] - r0) / sg) ** 2)
-        gc = np.exp(-0.5 * ((cc[c_lo:c_hi] - c0) / sg) ** 2)
-        fine[r_lo:r_hi, c_lo:c_hi] += a * np.outer(gr, gc)
-    if par["grain_contrast"]:
-        # Voronoi grains with soft boundaries
-        from scipy.spatial import cKDTree
-
-        n_grains = max(4, int((xmax - xmin) * (ymax - ymin) / par["grain_area_um2"]))
-        seeds = np.column_stack([rng.uniform(xmin, xmax, n_grains), rng.uniform(ymin, ymax, n_grains)])
-        level = rng.uniform(-par["grain_contrast"], par["grain_contrast"], n_grains)
-        yy, xx = np.mgrid[0:ny, 0:nx]
-        _, lab = cKDTree(seeds).query(np.column_stack([xmin + xx.ravel() * step,
-                                                       ymin + yy.ravel() * step]))
-        grain = ndimage.gaussian_filter(level[lab].reshape(ny, nx), 1.5)
-    else:
-        grain = np.zeros((ny, nx))
-    if par["slip_line_amp"]:
-        fine += _slip_lines(rng, extent, step, s, bands, par["slip_line_amp"], (ny, nx))
-    coeffs = np.stack([ndimage.spline_filter(fine, order=3), ndimage.spline_filter(grain, order=3)])
-    return coeffs, particles
-
-
-def _slip_lines(rng, extent, step, s, bands, amp, shape):
-    """Fine slip lines inside each band ribbon (raster of the texture).
-
-    Lines run along the band direction, 3–8 px apart, about 1 px wide (Gaussian profile), each
-    with a random signed contrast of up to ``amp`` and broken along its length (a smooth random
-    envelope), so that they carry information along the band as well as across it.
-    """
-    angle_deg, offsets, widths = bands
-    ny, nx = shape
-    xmin, _, ymin, _ = extent
-    a = np.deg2rad(angle_deg)
-    yy, xx = np.mgrid[0:ny, 0:nx]
-    x = xmin + xx * step
-    y = ymin + yy * step
-    along = x * np.cos(a) + y * np.sin(a)
-    normal = -x * np.sin(a) + y * np.cos(a)
-    out = np.zeros(shape)
-    # smooth random envelope along the lines (correlation ~10 px), thresholded into segments
-    env_noise = ndimage.gaussian_filter(rng.standard_normal(shape), 10 * s / step)
-    env_noise /= env_noise.std() + 1e-12
-    for c, w in zip(offsets, widths):
-        n_lines = max(2, int(w / (5.5 * s)))
-        pos = c + np.sort(rng.uniform(-w / 2, w / 2, n_lines))
-        for p in pos:
-            sign_amp = amp * rng.uniform(0.4, 1.0) * rng.choice([-1.0, 1.0])
-            phase = rng.uniform(0, 2 * np.pi)
-            env = 0.5 * (1 + np.tanh(2.0 * (env_noise + np.sin(along / (6 * s) + phase) * 0.3)))
-            out += sign_amp * env * np.exp(-0.5 * ((normal - p) / (0.5 * s)) ** 2)
-    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -420,100 +327,6 @@ def render(scene, shape, tilt_deg=0.0, center_px=None, height_scale=1.0, disp_fr
     return img, x, y
 
 
-@dataclass(frozen=True)
-class Detector:
-    """Secondary-electron detection and digitisation of a rendered image (:func:`detect`).
-
-    Attributes
-    ----------
-    dose_e_per_px : float
-        Mean number of detected electrons per pixel for a relative signal of 1 (a flat
-        surface renders at about 0.45). The shot noise is Poisson: a pixel of relative signal
-        ``I`` has a relative standard deviation ``1/sqrt(dose · I)``.
-    bits : int
-        Digitiser depth (8: 0..255 counts); the image is written as uint8 (bits ≤ 8) or uint16.
-    full_scale : float
-        Relative signal at the top count; brighter pixels saturate there, negative ones at 0.
-    gain_sd, offset_sd : float
-        Per-image contrast/brightness setting: gain ``1 + N(0, gain_sd)`` and offset
-        ``N(0, offset_sd)`` (relative signal), drawn for every image.
-    jitter_px : float
-        Scan-line jitter: every image row is shifted along x by ``N(0, jitter_px)`` pixels
-        (before the noise). It moves features away from their truth positions: an error
-        source, off by default.
-    """
-
-    dose_e_per_px: float = 1000.0
-    bits: int = 8
-    full_scale: float = 1.0
-    gain_sd: float = 0.05
-    offset_sd: float = 0.02
-    jitter_px: float = 0.0
-
-    def __post_init__(self):
-        if not self.dose_e_per_px > 0:
-            raise SemlabError(f"Detector dose_e_per_px must be > 0, got {self.dose_e_per_px!r}")
-        if not 1 <= int(self.bits) <= 16:
-            raise SemlabError(f"Detector bits must be 1..16, got {self.bits!r}")
-        if not self.full_scale > 0:
-            raise SemlabError(f"Detector full_scale must be > 0, got {self.full_scale!r}")
-        if min(self.gain_sd, self.offset_sd, self.jitter_px) < 0:
-            raise SemlabError("Detector gain_sd, offset_sd and jitter_px must be >= 0")
-
-
-#: Noise presets: ``"low"`` (a slow, high-dose scan: shot noise 0.5 % of a flat surface's
-#: signal) and ``"realistic"`` (a typical photo-quality scan: 2.1 %, signal-to-noise ~21).
-NOISE_LEVELS = {
-    "low": Detector(dose_e_per_px=20000.0),
-    "realistic": Detector(dose_e_per_px=1000.0),
-}
-
-
-def as_detector(detector):
-    """A :class:`Detector` from a Detector, a :data:`NOISE_LEVELS` name, or None (None)."""
-    if detector is None or isinstance(detector, Detector):
-        return detector
-    if isinstance(detector, str) and detector in NOISE_LEVELS:
-        return NOISE_LEVELS[detector]
-    raise SemlabError(f"detector must be a synth.Detector, one of {tuple(NOISE_LEVELS)} or None, "
-                      f"got {detector!r}")
-
-
-def detect(img, detector, rng=None, gain=None, offset=None):
-    """Detect and digitise a noise-free relative image: jitter, shot noise, gain, 8-bit counts.
-
-    Parameters
-    ----------
-    img : (H, W) float array
-        Relative signal (about 0..1), e.g. from :func:`render` with ``noise=0``.
-    detector : Detector or str
-        The model, or a :data:`NOISE_LEVELS` name.
-    rng : numpy Generator, optional
-    gain, offset : float, optional
-        This image's contrast and brightness; default drawn from the detector's spreads.
-
-    Returns
-    -------
-    (H, W) uint8 array (``bits`` ≤ 8) or uint16 array of counts, saturated at 0 and
-    ``2**bits − 1``.
-    """
-    det = as_detector(detector)
-    rng = np.random.default_rng() if rng is None else rng
-    img = np.asarray(img, float)
-    if det.jitter_px:
-        h, w = img.shape
-        shift = rng.normal(0, det.jitter_px, h)
-        vv, uu = np.mgrid[0:h, 0:w].astype(float)
-        img = ndimage.map_coordinates(img, [vv, uu - shift[:, None]], order=3, mode="nearest")
-    gain = 1.0 + rng.normal(0, det.gain_sd) if gain is None else gain
-    offset = rng.normal(0, det.offset_sd) if offset is None else offset
-    electrons = rng.poisson(det.dose_e_per_px * np.clip(img, 0, None))
-    signal = gain * electrons / det.dose_e_per_px + offset
-    top = 2 ** int(det.bits) - 1
-    counts = np.clip(np.round(signal / det.full_scale * top), 0, top)
-    return counts.astype(np.uint8 if det.bits <= 8 else np.uint16)
-
-
 def project_points(scene, xy_um, tilt_deg, shape, center_px=None, height_scale=1.0):
     """Pixel positions of end-state material points in a view at ``tilt_deg`` (end state).
 
@@ -548,88 +361,6 @@ def frame_positions(scene, xy_um, disp_fraction_left, shape, center_px=None):
                             center_px[1] + (xy[:, 1] - disp_fraction_left * uy) / s])
 
 
-# ---------------------------------------------------------------------------------------------
-# Stage drift between frames and scan drift within a frame
-
-#: Columns of ``truth/drift.csv``.
-DRIFT_TRUTH_COLUMNS = ("frame", "dx_px", "dy_px", "rotation_deg", "scale", "scan_dx_px",
-                       "scan_dy_px")
-
-
-def stage_drift(n_frames, shift_px=0.0, rotation_deg=0.0, scale=0.0, scan_px=0.0, rng=None):
-    """Random stage drift of each frame of a series, the last frame being the reference.
-
-    Every frame but the last is placed independently (a stage moved and brought back): a
-    shift of the image centre of length uniform in ``[0.5, 1] × shift_px`` in a random
-    direction, a rotation about the centre uniform in ``±rotation_deg`` and a magnification
-    ``1 + uniform(±scale)``. ``scan_px`` adds a slow drift while the frame is scanned: row
-    ``v`` sees the sample shifted by ``(scan_dx, scan_dy) · (t + 0.3 t²) / 1.3`` with
-    ``t = v / (H − 1)``, ``(scan_dx, scan_dy)`` uniform in ``±scan_px``. The last frame is
-    neither drifted nor scan-drifted (truth positions there are the end-state pixels).
-
-    Returns
-    -------
-    list of n_frames dicts with ``dx_px, dy_px, rotation_deg, scale, scan_dx_px, scan_dy_px``.
-    """
-    rng = np.random.default_rng(0) if rng is None else rng
-    out = []
-    for n in range(n_frames):
-        a, r = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 1.0) * shift_px
-        d = {"dx_px": r * np.cos(a), "dy_px": r * np.sin(a),
-             "rotation_deg": rng.uniform(-1, 1) * rotation_deg, "scale": 1 + rng.uniform(-1, 1) * scale,
-             "scan_dx_px": rng.uniform(-1, 1) * scan_px, "scan_dy_px": rng.uniform(-1, 1) * scan_px}
-        if n == n_frames - 1:
-            d = {k: (1.0 if k == "scale" else 0.0) for k in d}
-        out.append({k: float(v) for k, v in d.items()})
-    return out
-
-
-def _stage_matrix(drift, shape):
-    """(3, 3) map of undrifted pixels to drifted pixels (before the scan drift)."""
-    h, w = shape
-    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    t = np.deg2rad(drift["rotation_deg"])
-    A = drift["scale"] * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
-    m = np.eye(3)
-    m[:2, :2] = A
-    m[:2, 2] = c + np.array([drift["dx_px"], drift["dy_px"]]) - A @ c
-    return m
-
-
-def _scan_offset(drift, v, h):
-    t = np.asarray(v, float) / max(h - 1, 1)
-    f = (t + 0.3 * t * t) / 1.3
-    return drift["scan_dx_px"] * f, drift["scan_dy_px"] * f
-
-
-def drift_pixel_map(drift, shape):
-    """Undrifted pixel (x, y) seen at every pixel of a drifted image: (2, H, W) array.
-
-    Pixel ``q`` of the drifted image, scanned at row ``q_y``, shows the undrifted position
-    ``D⁻¹(q − s(q_y))`` with ``D`` the stage similarity and ``s`` the scan offset.
-    """
-    h, w = shape
-    vv, uu = np.mgrid[0:h, 0:w].astype(float)
-    sx, sy = _scan_offset(drift, vv, h)
-    mi = np.linalg.inv(_stage_matrix(drift, shape))
-    x, y = uu - sx, vv - sy
-    return np.stack([mi[0, 0] * x + mi[0, 1] * y + mi[0, 2], mi[1, 0] * x + mi[1, 1] * y + mi[1, 2]])
-
-
-def drifted_positions(drift, pts_px, shape):
-    """Where undrifted pixel positions ``(N, 2)`` appear in the drifted image (inverse of
-    :func:`drift_pixel_map`; the scan offset depends on the row reached, solved by
-    fixed-point iteration)."""
-    p = np.asarray(pts_px, float)
-    m = _stage_matrix(drift, shape)
-    q0 = p @ m[:2, :2].T + m[:2, 2]
-    q = q0.copy()
-    for _ in range(20):
-        sx, sy = _scan_offset(drift, q[:, 1], shape[0])
-        q = q0 + np.column_stack([sx, sy])
-    return q
-
-
 def strain_fields(scene, x_um, y_um, h_um=1e-3):
     """True deformation of the total displacement at end-state points.
 
@@ -659,123 +390,6 @@ def strain_fields(scene, x_um, y_um, h_um=1e-3):
         "Exx": 0.5 * (f11 * f11 + f21 * f21 - 1), "Eyy": 0.5 * (f12 * f12 + f22 * f22 - 1),
         "Exy": 0.5 * (f11 * f12 + f21 * f22),
     }
-
-
-def to_uint16(img, lo=0.0, hi=1.2):
-    """Quantise a relative image (about 0..1) to 16-bit counts."""
-    return np.clip((img - lo) / (hi - lo) * 65535.0, 0, 65535).round().astype(np.uint16)
-
-
-# ---------------------------------------------------------------------------------------------
-# Calibration block (perspective camera, vanishing-point lines)
-
-BOX_DIMS = (40.0, 30.0, 20.0)
-#: Fractions of a face at which grid lines are ruled on the block.
-GRID_FRACTIONS = tuple(np.linspace(0.1, 0.9, 9))
-
-
-def block_camera(tilt_deg, shape, focal_px=None):
-    """True K, R, t of the block view at stage tilt ``tilt_deg``.
-
-    World frame: the box's edges along x, y, z (z up out of the stage). The base orientation
-    looks at a corner so that three faces are visible; the stage tilt is a rotation about the
-    camera's y axis applied after it.
-    """
-    h, w = shape
-    # a short focal length (strong perspective) puts the vanishing points near the image, which
-    # is what makes them measurable; the box fills most of the image
-    focal_px = 1.37 * w if focal_px is None else focal_px
-    K = np.array([[focal_px, 0, (w - 1) / 2 + 0.014 * w], [0, focal_px, (h - 1) / 2 + 0.045 * h],
-                  [0, 0, 1.0]])
-    r_base = (rotation_about_axis([1, 0, 0], np.deg2rad(-120.0))
-              @ rotation_about_axis([0, 0, 1], np.deg2rad(35.0)))
-    R = rotation_about_axis([0, 1, 0], np.deg2rad(tilt_deg)) @ r_base
-    centre = np.array(BOX_DIMS) / 2
-    t = np.array([0.0, 0.0, 92.0]) - R @ centre
-    return K, R, t
-
-
-def _box_geometry():
-    lx, ly, lz = BOX_DIMS
-    corners = np.array([[i * lx, j * ly, k * lz] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    edges = {"x": [], "y": [], "z": []}
-    for a in range(8):
-        for b in range(a + 1, 8):
-            d = np.abs(corners[a] - corners[b])
-            if np.count_nonzero(d) == 1:
-                edges["xyz"[int(np.argmax(d))]].append((a, b))
-    faces = []
-    for axis in range(3):
-        for val in (0, 1):
-            idx = [i for i in range(8) if (corners[i][axis] > 0) == bool(val)]
-            # order the 4 corners around the face
-            other = [k for k in range(3) if k != axis]
-            ring = sorted(idx, key=lambda i: np.arctan2(corners[i][other[1]] - BOX_DIMS[other[1]] / 2,
-                                                        corners[i][other[0]] - BOX_DIMS[other[0]] / 2))
-            normal = np.zeros(3)
-            normal[axis] = 1 if val else -1
-            faces.append((ring, normal))
-    return corners, edges, faces
-
-
-def render_block(tilt_deg, shape, line_noise_px=1.0, rng=None):
-    """Render the calibration block and return its visible edges grouped by direction.
-
-    Returns
-    -------
-    image : (H, W) uint8
-    families : dict name -> (M, 4) array of noisy segments (x1, y1, x2, y2) in pixels
-    K, R, t : true camera
-    """
-    import cv2
-
-    rng = np.random.default_rng() if rng is None else rng
-    K, R, t = block_camera(tilt_deg, shape)
-    corners, edges, faces = _box_geometry()
-    img_pts = project_perspective(corners, K, R, t)
-    cam_centre = -R.T @ t
-    visible_faces = []
-    img = np.full(shape, 40, np.uint8)
-    for ring, normal in faces:
-        face_centre = corners[ring].mean(axis=0)
-        if np.dot(normal, cam_centre - face_centre) > 0:
-            visible_faces.append(set(ring))
-            shade = int(110 + 120 * abs(normal @ np.array([0.3, 0.5, 0.8])))
-            cv2.fillPoly(img, [np.round(img_pts[ring] * 16).astype(np.int32)], shade,
-                         lineType=cv2.LINE_AA, shift=4)
-    # visible edges, plus a grid ruled on the visible faces (as on a real calibration block):
-    # every segment is the image of a 3D line along x, y or z
-    segs3d = {name: [(corners[a], corners[b]) for a, b in pairs
-                     if any(a in f and b in f for f in visible_faces)]
-              for name, pairs in edges.items()}
-    dims = np.array(BOX_DIMS)
-    for ring, normal in faces:
-        if set(ring) not in visible_faces:
-            continue
-        axis = int(np.argmax(np.abs(normal)))
-        level = dims[axis] if normal[axis] > 0 else 0.0
-        b_ax, c_ax = [k for k in range(3) if k != axis]
-        for along, across in ((b_ax, c_ax), (c_ax, b_ax)):
-            for frac in GRID_FRACTIONS:
-                p = np.zeros(3)
-                p[axis] = level
-                p[across] = frac * dims[across]
-                q = p.copy()
-                q[along] = dims[along]
-                segs3d["xyz"[along]].append((p, q))
-    families = {}
-    for name, lst in segs3d.items():
-        out = []
-        for p3, q3 in lst:
-            p, q = project_perspective(np.array([p3, q3]), K, R, t)
-            cv2.line(img, tuple(np.round(p * 16).astype(int)), tuple(np.round(q * 16).astype(int)),
-                     255, 1, cv2.LINE_AA, shift=4)
-            # clicked end points: a little inside the ends, with click noise
-            p_in = p + 0.05 * (q - p)
-            q_in = q - 0.05 * (q - p)
-            out.append(np.concatenate([p_in, q_in]) + rng.normal(0, line_noise_px, 4))
-        families[name] = np.array(out)
-    return img, families, K, R, t
 
 
 # ---------------------------------------------------------------------------------------------
