@@ -32,6 +32,17 @@ def _finite_1d(values, name, min_n):
     return v, int((~ok).sum())
 
 
+def _paired_1d(x, y, ci):
+    """``x`` and ``y`` as flat float arrays of one length, after checking ``0 < ci < 1``."""
+    xa = np.asarray(x, float).ravel()
+    ya = np.asarray(y, float).ravel()
+    if xa.shape != ya.shape:
+        raise SemlabError(f"x and y must have the same length, got {xa.size} and {ya.size}")
+    if not 0 < ci < 1:
+        raise SemlabError(f"ci must be in (0, 1), got {ci!r}")
+    return xa, ya
+
+
 def bimodality(values, seed=0, min_bic_delta=10.0):
     """Is a sample better described by two Gaussian modes than by one?
 
@@ -122,12 +133,7 @@ def correlation(x, y, n_boot=1000, seed=0, ci=0.95):
     """
     from scipy.stats import pearsonr, rankdata, spearmanr
 
-    xa = np.asarray(x, float).ravel()
-    ya = np.asarray(y, float).ravel()
-    if xa.shape != ya.shape:
-        raise SemlabError(f"x and y must have the same length, got {xa.size} and {ya.size}")
-    if not 0 < ci < 1:
-        raise SemlabError(f"ci must be in (0, 1), got {ci!r}")
+    xa, ya = _paired_1d(x, y, ci)
     if int(n_boot) < 100:
         raise SemlabError(f"n_boot must be >= 100, got {n_boot!r}")
     ok = np.isfinite(xa) & np.isfinite(ya)
@@ -193,12 +199,7 @@ def linear_trend(x, y, ci=0.95):
     from scipy.stats import linregress
     from scipy.stats import t as student_t
 
-    xa = np.asarray(x, float).ravel()
-    ya = np.asarray(y, float).ravel()
-    if xa.shape != ya.shape:
-        raise SemlabError(f"x and y must have the same length, got {xa.size} and {ya.size}")
-    if not 0 < ci < 1:
-        raise SemlabError(f"ci must be in (0, 1), got {ci!r}")
+    xa, ya = _paired_1d(x, y, ci)
     ok = np.isfinite(xa) & np.isfinite(ya)
     xa, ya = xa[ok], ya[ok]
     n = len(xa)
