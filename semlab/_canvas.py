@@ -11,6 +11,7 @@ import warnings
 
 import numpy as np
 
+from .errors import SemlabError
 from .plots import display_range
 
 def _new_figure(figsize):
@@ -23,6 +24,20 @@ def _new_figure(figsize):
     # switch in another cell must not close the live picker
     Gcf.figs.pop(fig.canvas.manager.num, None)
     return fig
+
+
+class _ReportsErrors:
+    """Mixin of the picker figures: ``_run(fn, *args)`` calls ``fn`` and turns a
+    :class:`~semlab.errors.SemlabError` into ``self.message`` (shown in the status line)."""
+
+    def _run(self, fn, *args):
+        try:
+            out = fn(*args)
+            self.message = ""
+            return out
+        except SemlabError as err:
+            self.message = str(err)
+            return None
 
 
 def _toolbar_busy(fig):

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._canvas import _canvas_widget, _display_scale, _new_figure, _show_image, _toolbar_busy
+from ._canvas import (_canvas_widget, _display_scale, _new_figure, _ReportsErrors, _show_image,
+                      _toolbar_busy)
 from .errors import ExperimentError, GeometryError, SemlabError
 from .io import read_text, write_with_backup
 from .picking import _UNDO_LEVELS, _check_images, _inside
@@ -293,7 +294,7 @@ _FAMILY_COLORS = {"x": "#ff4040", "y": "#40ff40", "z": "#4090ff"}
 _OTHER_COLORS = ["#ffd000", "#ff40ff", "#40ffff", "#ff9000"]
 
 
-class LinePickerFigure:
+class LinePickerFigure(_ReportsErrors):
     """Matplotlib view and controller of a :class:`LinePicker`.
 
     Left click twice: a segment in the selected family (a dashed line follows the mouse
@@ -374,15 +375,6 @@ class LinePickerFigure:
         self.fig.canvas.draw_idle()
         for cb in list(self.on_change):
             cb()
-
-    def _run(self, fn, *args):
-        try:
-            out = fn(*args)
-            self.message = ""
-            return out
-        except SemlabError as err:
-            self.message = str(err)
-            return None
 
     def _on_press(self, event):
         if event.inaxes is not self.ax or event.xdata is None:

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ._canvas import (_canvas_widget, _display_scale, _Focus, _image_limits, _new_figure,
-                      _show_image, _toolbar_busy)
+                      _ReportsErrors, _show_image, _toolbar_busy)
 from .errors import SemlabError
 from .line_picking import LinePicker, LinePickerFigure, line_picker_widget
 from .picking import (AUTO_PENDING, CorrespondencePicker, autosave_path, read_autosave,
@@ -103,7 +103,7 @@ def picker_layout(n_views, shape, width_in=10.5, magnifier=True):
     return (width_in, height_in), main, (mag if magnifier else None)
 
 
-class PickerFigure:
+class PickerFigure(_ReportsErrors):
     """Matplotlib view and mouse/key controller of a :class:`CorrespondencePicker`.
 
     The views are shown side by side, each with a magnifier (at least
@@ -356,15 +356,6 @@ class PickerFigure:
         return None
 
     # ---- actions (keys and buttons)
-    def _run(self, fn, *args):
-        try:
-            out = fn(*args)
-            self.message = ""
-            return out
-        except SemlabError as err:
-            self.message = str(err)
-            return None
-
     def do_accept(self):
         """Accept the current point (key ``a``); says so when there is none."""
         if self.picker.current is None:
