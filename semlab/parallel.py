@@ -571,7 +571,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
     """
     from tqdm.auto import tqdm
 
-    from .tracking import Tracks, TrackingWarning, track_reverse
+    from .tracking import Tracks, TrackingWarning, _seed_kinds, track_reverse
 
     kw = dict(track_kw)
     kw.pop("progress", None)
@@ -588,12 +588,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
         raise SemlabError(f"tiled tracking aligns tiles to 16 px: max_level <= 4, got {level}")
     n = len(seeds) if seeds.ndim == 2 else 0
     kind = kw.pop("seed_kind", None)
-    if kind is None:
-        kinds = np.array(["seed"] * n, dtype=object)
-    elif isinstance(kind, str):
-        kinds = np.array([kind] * n, dtype=object)
-    else:
-        kinds = np.asarray(list(kind), dtype=object)
+    kinds = _seed_kinds(kind, n)
     F = len(frames)
     it = range(F)
     if progress:

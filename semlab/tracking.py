@@ -380,6 +380,16 @@ def median_outliers(pts_ref, disp, candidates, threshold=2.0, n_neighbours=8, ep
     return out
 
 
+def _seed_kinds(seed_kind, n):
+    """(n,) object array of seed labels: ``"seed"`` (None), one label for all (a str), or the
+    given per-seed labels as they are (the caller checks their number)."""
+    if seed_kind is None:
+        return np.array(["seed"] * n, dtype=object)
+    if isinstance(seed_kind, str):
+        return np.array([seed_kind] * n, dtype=object)
+    return np.asarray(list(seed_kind), dtype=object)
+
+
 def _inside(pts, shape):
     h, w = shape
     return (np.isfinite(pts).all(axis=1) & (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1)
@@ -590,14 +600,9 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     if not fb_threshold_px > 0:
         raise TrackingError(f"fb_threshold_px must be > 0, got {fb_threshold_px!r}")
     n = len(seeds)
-    if seed_kind is None:
-        kinds = np.array(["seed"] * n, dtype=object)
-    elif isinstance(seed_kind, str):
-        kinds = np.array([seed_kind] * n, dtype=object)
-    else:
-        kinds = np.asarray(list(seed_kind), dtype=object)
-        if len(kinds) != n:
-            raise TrackingError(f"seed_kind has {len(kinds)} labels for {n} seeds")
+    kinds = _seed_kinds(seed_kind, n)
+    if len(kinds) != n:
+        raise TrackingError(f"seed_kind has {len(kinds)} labels for {n} seeds")
 
     F = len(frames)
     ref = F - 1
