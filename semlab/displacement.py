@@ -71,6 +71,15 @@ def tracks_to_records(tracks, seed_kind=None):
     return rows
 
 
+def _new_file(path, overwrite):
+    """``Path(path)``, after refusing an existing file unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise SemlabError(f"{path} already exists: pass overwrite=True to replace it or choose "
+                          "another --out folder")
+    return path
+
+
 def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
     """Write ``tracks.csv`` (columns :data:`TRACKS_CSV_COLUMNS`, then the diagnostic
     :data:`TRACKS_CSV_EXTRA_COLUMNS`).
@@ -80,10 +89,7 @@ def write_tracks_csv(path, tracks, seed_kind=None, overwrite=False):
     SemlabError
         ``path`` exists and ``overwrite`` is False.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise SemlabError(f"{path} already exists: pass overwrite=True to replace it or choose "
-                          "another --out folder")
+    path = _new_file(path, overwrite)
     rows = tracks_to_records(tracks, seed_kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
@@ -211,9 +217,7 @@ def write_displacements_csv(path, tracks, disp, seed_kind=None, z_um=None, overw
     z_um : (N,) float, optional
         Heights of stereo-seeded tracks (empty cells for NaN).
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise SemlabError(f"{path} already exists: pass overwrite=True or choose another --out folder")
+    path = _new_file(path, overwrite)
     kinds = tracks.seed_kind if seed_kind is None else seed_kind
     z = np.full(tracks.n_tracks, np.nan) if z_um is None else np.asarray(z_um, float)
     xy = tracks.xy[-1]

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from .displacement import _new_file
 from .errors import GeometryError, SemlabError
 from .tracking import _as_2d, normalize_frame
 from .transform2d import MODELS, Transform2D, _check_model, estimate_transform, fit_transform
@@ -591,9 +592,7 @@ def write_drift_csv(path, registration, overwrite=False):
     SemlabError
         ``path`` exists and ``overwrite`` is False.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise SemlabError(f"{path} already exists: pass overwrite=True or choose another --out folder")
+    path = _new_file(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(DRIFT_CSV_COLUMNS + _DRIFT_EXTRA))
