@@ -334,7 +334,8 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
         In the order of ``pts_ref``.
     """
     from .noise import image_noise_sigma
-    from .subset import NAN_INPUT, OUTSIDE, SubsetResult, _as_image, _as_points, icgn_refine
+    from .subset import (OUTSIDE, SubsetResult, _as_image, _as_points, _unsolved_outputs,
+                         icgn_refine)
 
     if "progress" in icgn_kw:
         raise SemlabError("give progress= to tiled_icgn itself, not as an icgn_refine keyword")
@@ -367,14 +368,7 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
     members = [np.flatnonzero(finite & t.contains(X0)) for t in tiles]
     work = [(t, m) for t, m in zip(tiles, members) if len(m)]
 
-    out_pts = np.full((n, 2), np.nan)
-    out_w = np.full((n, 6), np.nan)
-    out_z = np.full(n, -1.0)
-    out_c = np.zeros(n, bool)
-    out_k = np.zeros(n, int)
-    out_s = np.full((n, 2), np.nan)
-    out_r = np.full(n, NAN_INPUT, dtype=object)
-    out_rr = np.full(n, np.nan)
+    out_pts, out_w, out_z, out_c, out_k, out_s, out_rr, out_r = _unsolved_outputs(n)
     out_r[finite] = OUTSIDE               # finite points in no tile lie outside the image
 
     plans = []

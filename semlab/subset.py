@@ -316,14 +316,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     if smooth_sigma_px and np.isfinite(noise_var[0]):
         kgx, kgy = (_smooth(g, smooth_sigma_px).ravel() for g in (rgx, rgy))
 
-    pts = np.full((n, 2), np.nan)
-    wout = np.full((n, 6), np.nan)
-    zncc = np.full(n, -1.0)
-    conv = np.zeros(n, bool)
-    nit = np.zeros(n, int)
-    sig = np.full((n, 2), np.nan)
-    rres = np.full(n, np.nan)
-    reason = np.full(n, NAN_INPUT, dtype=object)
+    pts, wout, zncc, conv, nit, sig, rres, reason = _unsolved_outputs(n)
 
     finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
     X0 = np.zeros((n, 2), np.intp)
@@ -393,6 +386,14 @@ def _maybe_tqdm(it, total, progress):
         return it
     from tqdm.auto import tqdm
     return tqdm(it, total=total, desc="IC-GN subsets", unit="chunk")
+
+
+def _unsolved_outputs(n):
+    """Per-point outputs of :func:`icgn_refine` before any of ``n`` points is solved: pts (n, 2),
+    warp (n, 6), zncc, converged, n_iter, sigma_px (n, 2), residual_ratio, reason."""
+    return (np.full((n, 2), np.nan), np.full((n, 6), np.nan), np.full(n, -1.0),
+            np.zeros(n, bool), np.zeros(n, int), np.full((n, 2), np.nan), np.full(n, np.nan),
+            np.full(n, NAN_INPUT, dtype=object))
 
 
 def _store(ii, r, pts, wout, zncc, conv, nit, reason):
