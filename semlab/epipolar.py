@@ -385,11 +385,13 @@ def sampson_distance(F, x0, x1):
     Parameters
     ----------
     F : (3, 3) array
+        Fundamental matrix, ``x1ᵀ F x0 = 0`` for a true correspondence.
     x0, x1 : (N, 2) arrays of (x, y) in pixels
+        Corresponding points in view 0 and view 1.
 
     Returns
     -------
-    (N,) array, pixels.
+    (N,) array of Sampson distances, pixels.
     """
     x0, x1 = _as_points(x0, "x0"), _as_points(x1, "x1")
     return _sampson_batch(np.asarray(F, float)[None], x0, x1)[0]
