@@ -16,9 +16,8 @@ The proposal of a click is computed in two stages:
    ``max_refine_shift_px`` of the guess; a :class:`~semlab.errors.SemlabError` it raises is
    kept in ``last_refine_error`` and the guess is used.
 
-Coordinates are ``(x, y)`` pixels, x to the right, y down, origin at the centre of the
-top-left pixel (OpenCV), so that an image of shape ``(H, W)`` covers
-``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
+Coordinates are those of :mod:`semlab.proposals`: ``(x, y)`` pixels, origin at the centre
+of the top-left pixel.
 """
 
 from __future__ import annotations
