@@ -565,7 +565,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
     """
     from tqdm.auto import tqdm
 
-    from .tracking import Tracks, TrackingWarning, _seed_kinds, track_reverse
+    from .tracking import Tracks, _check_track_loss, _seed_kinds, track_reverse
 
     kw = dict(track_kw)
     kw.pop("progress", None)
@@ -663,20 +663,7 @@ def tiled_track_reverse(frames, seeds, *, tile_px=DEFAULT_TILE_PX, max_motion_px
             xy[:, idx] = txy[:, core] + shift
             fb[:, idx], valid[:, idx], zn[:, idx] = tfb[:, core], tv[:, core], tz[:, core]
             sig[:, idx], gap[:, idx] = ts[:, core], tg[:, core]
-    blank = [k for k in range(ref) if stretch[k][2]]
-    if blank:
-        warnings.warn(f"frame(s) {blank} are blank (no contrast): every track is invalid "
-                      "there and resumes from its last valid frame", TrackingWarning,
-                      stacklevel=2)
-    if not valid[:ref].any():
-        raise TrackingError(f"every track was lost at the first step (frame {ref - 1}) and none "
-                            "recovered in any earlier frame: check the frame order (frame 0 = "
-                            "earliest), the seeds (pixels of the last frame) or loosen "
-                            "fb_threshold_px/min_zncc")
-    empty = [k for k in range(ref) if not valid[k].any() and k not in blank]
-    if empty:
-        warnings.warn(f"no valid track in frame(s) {empty}: their displacements are undefined",
-                      TrackingWarning, stacklevel=2)
+    _check_track_loss(valid, [k for k in range(ref) if stretch[k][2]])
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap,
                   seed_kind=kinds, reference_frame=ref, method=method, params=params,
                   registration=reg)

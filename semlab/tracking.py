@@ -425,6 +425,29 @@ def _lk(prev_u8, next_u8, p0, guess, lk_kw):
 
 # ----------------------------------------------------------------------------- tracking
 
+def _check_track_loss(valid, blank):
+    """Warnings and error of a finished reverse tracking, ``valid`` (F, N) with the reference
+    last: the blank frames (list of indices), every track lost at the first step (error), the
+    frames without any valid track. Warnings point at the caller of the tracking function."""
+    ref = len(valid) - 1
+    if blank:
+        warnings.warn(f"frame(s) {blank} are blank (no contrast): every track is invalid there "
+                      "and resumes from its last valid frame", TrackingWarning, stacklevel=3)
+    if ref > 0 and not valid[:ref].any():
+        raise TrackingError(f"every track was lost at the first step (frame {ref - 1}) and none "
+                            "recovered in any earlier frame: check the frame order (frame 0 = "
+                            "earliest), the seeds (pixels of the last frame) or loosen "
+                            "fb_threshold_px/min_zncc")
+    empty = [k for k in range(ref) if not valid[k].any() and k not in blank]
+    if empty:
+        alive = np.flatnonzero(valid.any(axis=1))
+        msg = f"no valid track in frame(s) {empty}: their displacements are undefined"
+        if alive.min() > 0:
+            msg += (f"; the last track was lost at frame {alive.min() - 1} (valid for the last "
+                    f"time in frame {alive.min()})")
+        warnings.warn(msg, TrackingWarning, stacklevel=3)
+
+
 def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_threshold_px=0.5,
                   min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
                   max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
@@ -765,23 +788,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         if method == "subset":
             grad_last[good] = w[good]
 
-    if warned_blank:
-        warnings.warn(f"frame(s) {sorted(warned_blank)} are blank (no contrast): every track is "
-                      "invalid there and resumes from its last valid frame", TrackingWarning,
-                      stacklevel=2)
-    if F > 1 and not valid[:ref].any():
-        raise TrackingError(f"every track was lost at the first step (frame {ref - 1}) and none "
-                            "recovered in any earlier frame: check the frame order (frame 0 = "
-                            "earliest), the seeds (pixels of the last frame) or loosen "
-                            "fb_threshold_px/min_zncc")
-    empty = [k for k in range(ref) if not valid[k].any() and k not in warned_blank]
-    if empty:
-        alive = np.flatnonzero(valid.any(axis=1))
-        msg = f"no valid track in frame(s) {empty}: their displacements are undefined"
-        if alive.min() > 0:
-            msg += (f"; the last track was lost at frame {alive.min() - 1} (valid for the last "
-                    f"time in frame {alive.min()})")
-        warnings.warn(msg, TrackingWarning, stacklevel=2)
+    _check_track_loss(valid, sorted(warned_blank))
     params = dict(win_size=win_size, max_level=max_level, fb_threshold_px=fb_threshold_px,
                   min_zncc=min_zncc, direct_correction=direct_correction,
                   max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
