@@ -239,6 +239,15 @@ class Experiment:
 
 
 # -- validation helpers -----------------------------------------------------------------------
+def _table(cfg, name, allowed, toml_path):
+    """``cfg[name]``, refused unless it is a TOML table ``[name]`` with only ``allowed`` keys."""
+    table = cfg[name]
+    if not isinstance(table, dict):
+        raise ExperimentError(f"{toml_path}: {name} must be a table [{name}]")
+    _check_keys(table, allowed, f"[{name}]", toml_path)
+    return table
+
+
 def _check_keys(table, allowed, where, toml_path):
     for key in table:
         if key not in allowed:
@@ -492,10 +501,7 @@ def load(path) -> Experiment:
 
     stereo = None
     if "stereo" in cfg:
-        st = cfg["stereo"]
-        if not isinstance(st, dict):
-            raise ExperimentError(f"{toml_path}: stereo must be a table [stereo]")
-        _check_keys(st, STEREO_KEYS, "[stereo]", toml_path)
+        st = _table(cfg, "stereo", STEREO_KEYS, toml_path)
         views = st.get("views")
         if not isinstance(views, list) or len(views) < 2:
             raise ExperimentError(f"{toml_path}: [stereo] views must list 2 or more images (stage "
@@ -552,10 +558,7 @@ def load(path) -> Experiment:
 
     series = None
     if "series" in cfg:
-        se = cfg["series"]
-        if not isinstance(se, dict):
-            raise ExperimentError(f"{toml_path}: series must be a table [series]")
-        _check_keys(se, SERIES_KEYS, "[series]", toml_path)
+        se = _table(cfg, "series", SERIES_KEYS, toml_path)
         if "frames" not in se:
             raise ExperimentError(f"{toml_path}: [series] needs frames = [...] or a glob string")
         frame_paths = _expand_frames(se["frames"], root, toml_path)
