@@ -53,6 +53,19 @@ def _as_map(z, name="z_um"):
     return a
 
 
+def _segment(p0, p1, names, pairs, segment):
+    """Ends (2,) and length of a profile segment, refused unless two finite, distinct (x, y)
+    points; ``names``, ``pairs`` and ``segment`` word the errors."""
+    p0 = np.asarray(p0, float).ravel()
+    p1 = np.asarray(p1, float).ravel()
+    if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
+        raise GeometryError(f"{names} must be finite (x, y) {pairs}")
+    length = float(np.hypot(*(p1 - p0)))
+    if length == 0:
+        raise GeometryError(f"{names} are the same point: give {segment}")
+    return p0, p1, length
+
+
 def _fill_nearest(z):
     """Each NaN pixel takes the value of its nearest finite pixel."""
     from scipy import ndimage
@@ -477,13 +490,7 @@ def profile_between(z_um, sigma_um, p0_px, p1_px, pixel_size_um, width_px=1.0, s
 
     z = _as_map(z_um)
     sg = _as_map(sigma_um, "sigma_um") if sigma_um is not None else np.zeros_like(z)
-    p0 = np.asarray(p0_px, float).ravel()
-    p1 = np.asarray(p1_px, float).ravel()
-    if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
-        raise GeometryError("p0_px and p1_px must be finite (x, y) pixel pairs")
-    L = float(np.hypot(*(p1 - p0)))
-    if L == 0:
-        raise GeometryError("p0_px and p1_px are the same point: give a segment")
+    p0, p1, L = _segment(p0_px, p1_px, "p0_px and p1_px", "pixel pairs", "a segment")
     m = int(np.floor(L / step_px)) + 1
     t = np.linspace(0.0, L, m)
     d = (p1 - p0) / L

@@ -18,6 +18,7 @@ from scipy import stats
 from tqdm.auto import tqdm
 
 from .errors import GeometryError, SemlabError
+from .metrology import _segment
 from .plane import (_as_xyz, fit_reference_plane, heights_above_plane, plane_through_points,
                     ransac_plane)
 from .reconstruct import heights_from_tilts
@@ -439,13 +440,8 @@ def profile_along_line(xy_um, z_um, p0_um, p1_um, width_um, n_bins=None):
     if xy.ndim != 2 or xy.shape[1] != 2 or z.shape[0] != xy.shape[0]:
         raise GeometryError(
             f"xy_um must be (N, 2) and z_um (N,), got {xy.shape} and {np.shape(z_um)}")
-    p0 = np.asarray(p0_um, float).ravel()
-    p1 = np.asarray(p1_um, float).ravel()
-    if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
-        raise GeometryError("p0_um and p1_um must be finite (x, y) pairs in µm")
-    length = float(np.hypot(*(p1 - p0)))
-    if length == 0:
-        raise GeometryError("p0_um and p1_um are the same point: give a segment of non-zero length")
+    p0, p1, length = _segment(p0_um, p1_um, "p0_um and p1_um", "pairs in µm",
+                              "a segment of non-zero length")
     if not np.isfinite(width_um) or width_um <= 0:
         raise GeometryError(f"width_um must be positive, got {width_um!r}")
     d = (p1 - p0) / length
