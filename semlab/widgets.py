@@ -356,13 +356,18 @@ class PickerFigure(_ReportsErrors):
         return None
 
     # ---- actions (keys and buttons)
+    def _on_current(self, fn, none_message):
+        """Run ``fn`` on the point being picked, or say ``none_message`` when there is none."""
+        if self.picker.current is None:
+            self.message = none_message
+        else:
+            self._run(fn)
+        self.redraw()
+
     def do_accept(self):
         """Accept the current point (key ``a``); says so when there is none."""
-        if self.picker.current is None:
-            self.message = "nothing to accept: no point is being picked (click a feature first)"
-        else:
-            self._run(self.picker.accept)
-        self.redraw()
+        self._on_current(self.picker.accept,
+                         "nothing to accept: no point is being picked (click a feature first)")
 
     def do_delete(self):
         """Delete the selected point (key ``d``); says so when none is selected."""
@@ -382,11 +387,7 @@ class PickerFigure(_ReportsErrors):
 
     def do_cancel(self):
         """Drop the point being picked (escape); says so when there is none."""
-        if self.picker.current is None:
-            self.message = "nothing to drop: no point is being picked"
-        else:
-            self._run(self.picker.cancel)
-        self.redraw()
+        self._on_current(self.picker.cancel, "nothing to drop: no point is being picked")
 
     def toggle_points(self, show=None):
         """Hide or show the points already picked (key ``h``)."""
