@@ -73,6 +73,9 @@ class AnalysisConfig:
         Pyramidal Lucas–Kanade or IC-GN subsets for the tracking steps.
     gauge_length_px : float or None
         Gauge length of the sparse strain (None: from the track density).
+    heightmap : bool
+        Compute the dense height map (a subset at every pixel of view 0: minutes on
+        megapixel views); False leaves the height-map files out.
     """
 
     stereo_method: str | None = None
@@ -80,6 +83,7 @@ class AnalysisConfig:
     seed: int = 0
     track_method: str = "lk"
     gauge_length_px: float | None = None
+    heightmap: bool = True
 
     def __post_init__(self):
         if self.stereo_method not in STEREO_METHODS:
@@ -89,6 +93,8 @@ class AnalysisConfig:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
         if int(self.n_boot) != self.n_boot or self.n_boot < 0:
             raise SemlabError(f"n_boot = {self.n_boot!r}: give a whole number >= 0")
+        if not isinstance(self.heightmap, bool):
+            raise SemlabError(f"heightmap = {self.heightmap!r}: give true or false")
         if self.gauge_length_px is not None and not self.gauge_length_px > 0:
             raise SemlabError(f"gauge_length_px = {self.gauge_length_px!r}: give a length > 0 "
                               "in pixels, or None")
@@ -381,6 +387,8 @@ class Analysis:
         exp = self.experiment
         if not self.has_stereo:
             raise StepFailed(f"{exp.toml_path}: no [stereo] table, so no height map")
+        if not self.config.heightmap:
+            raise StepFailed("the dense height map is switched off (heightmap = false)")
 
         def compute():
             res = self.stereo()
@@ -437,8 +445,9 @@ class Analysis:
     def applicable_steps(self):
         """The steps this experiment has input for."""
         stereo_steps = ("stereo", "heightmap")
-        return [s for s in STEPS if (s in stereo_steps and self.has_stereo)
-                or (s not in stereo_steps and self.has_series)]
+        return [s for s in STEPS if ((s in stereo_steps and self.has_stereo)
+                                     or (s not in stereo_steps and self.has_series))
+                and (s != "heightmap" or self.config.heightmap)]
 
     def comparison_methods(self):
         """Stereo methods the reports compare with the configured one: the reference method

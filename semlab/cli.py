@@ -89,6 +89,28 @@ def _cmd_synth(args):
     return 0
 
 
+def _settings(pairs):
+    """``--set KEY=VALUE`` pairs as an analysis configuration (values in TOML syntax: true,
+    12, 0.5, "subset"; a bare word is a string)."""
+    from .analysis import AnalysisConfig
+    from .errors import SemlabError
+    from .experiment import tomllib
+
+    d = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise SemlabError(f"--set {pair!r}: give KEY=VALUE, e.g. --set heightmap=false")
+        try:
+            d[key.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            d[key.strip()] = value.strip()
+    try:
+        return AnalysisConfig.from_dict(d)
+    except TypeError as exc:
+        raise SemlabError(f"--set: {exc}") from None
+
+
 def _cmd_run(args):
     from .report import run
 
@@ -97,7 +119,8 @@ def _cmd_run(args):
 
         set_default_scheduler(args.scheduler)   # the notebooks' kernels inherit it
     only = [s.strip() for s in args.only.split(",")] if args.only else None
-    out = run(args.experiment, args.out, force=args.force, only=only, progress=not args.quiet)
+    out = run(args.experiment, args.out, force=args.force, only=only, progress=not args.quiet,
+              config=_settings(args.set))
     print(f"results in {out}")
     return 0
 
@@ -151,6 +174,9 @@ def build_parser():
                          "run has succeeded; other files are kept)")
     pr.add_argument("--only", default="", help="comma-separated notebook numbers, e.g. 04,05")
     pr.add_argument("--quiet", action="store_true")
+    pr.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="an analysis setting (semlab.AnalysisConfig), e.g. --set heightmap=false "
+                         "--set track_method=subset; repeatable")
     pr.add_argument("--scheduler", default="",
                     help="dask.distributed scheduler address tcp://HOST:PORT to run the tiled "
                          "matching and tracking on (default: a local cluster on this machine)")

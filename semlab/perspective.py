@@ -273,7 +273,9 @@ def check_perspective_visible(x0, x1, F):
     (metres). The perspective model is used only when it explains the matches clearly
     better than the affine camera: the RMS geometric residual of the affine epipolar
     geometry (Gold Standard hyperplane, H&Z Alg. 14.1) must exceed
-    :data:`PERSPECTIVE_GAIN_MIN` times the RMS Sampson residual of ``F``.
+    :data:`PERSPECTIVE_GAIN_MIN` times the RMS Sampson residual of ``F``, both per degree of
+    freedom left (n − 4 and n − 7 for n matches), and the gain must also pass an F-test at the
+    0.1 % level (with few matches a better fit of the 7-parameter F is no evidence).
 
     Parameters
     ----------
@@ -294,11 +296,22 @@ def check_perspective_visible(x0, x1, F):
 
     a = np.asarray(x0, float)
     b = np.asarray(x1, float)
+    n = len(a)
     X = np.hstack([b, a])
     sv = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
-    rms_aff = float(sv[-1] / np.sqrt(len(X)))
-    rms_per = float(np.sqrt(np.mean(np.asarray(sampson_distance(F, a, b), float) ** 2)))
-    if not rms_aff > PERSPECTIVE_GAIN_MIN * rms_per:
+    # residuals per degree of freedom left (affine F: 4 parameters, perspective F: 7), so that
+    # a few points, which any F with more parameters fits better, do not pass as perspective
+    dof_aff, dof_per = max(n - 4, 0), max(n - 7, 0)
+    rms_aff = float(sv[-1] / np.sqrt(max(dof_aff, 1)))
+    ss_per = float(np.sum(np.asarray(sampson_distance(F, a, b), float) ** 2))
+    rms_per = float(np.sqrt(ss_per / dof_per)) if dof_per > 0 else np.inf
+    # and a gain that few points could give by chance is not enough (F-test, 0.1 % level)
+    from scipy.stats import f as f_dist
+
+    gain_min = PERSPECTIVE_GAIN_MIN
+    if dof_per > 0:
+        gain_min = max(gain_min, float(np.sqrt(f_dist.ppf(0.999, dof_aff, dof_per))))
+    if not rms_aff > gain_min * rms_per:
         raise GeometryError(
             f"camera = 'perspective': the {len(a)} matches fit an affine (parallel-projection) "
             f"camera as well as a perspective one (RMS residual {rms_aff:.3g} px affine, "

@@ -113,3 +113,22 @@ def test_tilt_matches_of_three_views_are_computed_once_for_every_method(tmp_path
     # reference surface)
     np.testing.assert_allclose(np.diff(merged.tilt_deg), np.diff(raw.tilt_deg), atol=1e-9)
     assert an.computed.count("tilt_matches") == 1
+
+
+def test_cli_settings_become_the_config():
+    from semlab.cli import _settings
+
+    cfg = _settings(["heightmap=false", "track_method=subset", "n_boot=5"])
+    assert cfg == semlab.AnalysisConfig(heightmap=False, track_method="subset", n_boot=5)
+    with pytest.raises(semlab.SemlabError, match="did you mean 'heightmap'"):
+        _settings(["heigthmap=false"])
+    with pytest.raises(semlab.SemlabError, match="KEY=VALUE"):
+        _settings(["heightmap"])
+
+
+def test_heightmap_switched_off_is_not_run(computed):
+    exp, out, _, _ = computed
+    an = semlab.Analysis(exp, out, n_boot=0, heightmap=False, progress=False)
+    assert "heightmap" not in an.applicable_steps()
+    with pytest.raises(analysis.StepFailed, match="switched off"):
+        an.heightmap()

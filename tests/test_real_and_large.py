@@ -23,7 +23,10 @@ def test_run_on_real_quartz_series(tmp_path):
     (exp / "experiment.toml").write_text(
         'name = "quartz"\npixel_size_um = 1.0\n\n[stereo]\n' f"views = [{views}]\n")
     out = tmp_path / "report"
-    assert main(["run", str(exp), "--out", str(out), "--only", "00,04", "--quiet"]) == 0
+    # the dense map of three 1200×1200 views would take minutes: this test is about the
+    # points and the tilts (the dense map has its own tests)
+    assert main(["run", str(exp), "--out", str(out), "--only", "00,04", "--set", "heightmap=false",
+                 "--quiet"]) == 0
     cal = json.loads((out / "calibration.json").read_text())
     assert cal["tilt_source"] == "estimated"
     steps = np.diff(cal["tilt_deg"])

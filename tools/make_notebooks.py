@@ -441,7 +441,9 @@ on the map itself. Heights are above the same reference plane as the points. Wri
     code('''
 from semlab import metrology
 hm = None
-if res is not None:
+if res is not None and not an.config.heightmap:
+    print("The dense height map is switched off for this run (config heightmap = false).")
+elif res is not None:
     hm, bands = an.heightmap()  # computed once by the analysis, which wrote the files
     print(f"measured {100 * hm.valid.mean():.1f} % of view 0; median 1σ {np.nanmedian(hm.sigma_um) * 1e3:.1f} nm "
           f"(σ scale {hm.parallax.sigma_scale:.2f} from the map itself)")
