@@ -186,6 +186,10 @@ class Analysis:
         Where the step cache lives (default: ``out_dir/.semlab/cache``, or the user's cache
         folder without ``out_dir``). ``semlab run`` writes its result files into a staging
         folder and keeps the cache in the output folder itself.
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of a running dask.distributed scheduler: the tiled steps (dense
+        IC-GN, tracking) run on that cluster (see :mod:`semlab.parallel`); None: a local
+        cluster, or the one ``semlab run --scheduler`` named. Checked when given.
     **changes
         Settings that replace those of ``config`` (unknown names raise ``TypeError``).
 
@@ -215,9 +219,13 @@ class Analysis:
     """
 
     def __init__(self, experiment, out_dir=None, config=None, progress=True, cache_dir=None,
-                 **changes):
+                 scheduler=None, **changes):
         from .experiment import Experiment, load
 
+        if scheduler:
+            from .parallel import set_default_scheduler
+
+            set_default_scheduler(scheduler)  # a wrong address fails here, not mid-run
         self.experiment = experiment if isinstance(experiment, Experiment) else load(experiment)
         if config is None:
             config = AnalysisConfig()

@@ -132,3 +132,8 @@ def test_heightmap_switched_off_is_not_run(computed):
     assert "heightmap" not in an.applicable_steps()
     with pytest.raises(analysis.StepFailed, match="switched off"):
         an.heightmap()
+
+
+def test_a_scheduler_that_is_not_an_address_is_refused_at_once(small_experiment):
+    with pytest.raises(semlab.SemlabError, match="tcp://HOST:PORT"):
+        semlab.Analysis(small_experiment, scheduler="localhost", progress=False)
