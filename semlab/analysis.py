@@ -131,25 +131,48 @@ class AnalysisConfig:
 
 
 # ------------------------------------------------------------------------------ fingerprints
-def _sha256_file(path, h):
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
+def _file_sha256(path, memo):
+    """SHA-256 of a file's bytes; ``memo`` maps its path, size and mtime to a hash computed
+    before, so that the notebooks of a run do not read every frame again."""
+    st = os.stat(path)
+    tag = f"{Path(path).resolve()}|{st.st_size}|{st.st_mtime_ns}"
+    if tag not in memo:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        memo[tag] = h.hexdigest()
+    return memo[tag]
 
 
 def experiment_fingerprint(exp):
     """SHA-256 of the experiment's TOML and every input file it names (views, frames,
-    correspondences, lines), in order; the ``truth/`` folder is not an input."""
-    h = hashlib.sha256()
+    correspondences, lines), in order; the ``truth/`` folder is not an input. File hashes
+    are remembered by path, size and mtime in the user's cache folder (``file_hashes.json``)."""
     paths = [exp.toml_path]
     if exp.stereo is not None:
         paths += list(exp.stereo.view_paths)
         paths += [p for p in (exp.stereo.correspondences_path, exp.stereo.lines_path) if p]
     if exp.series is not None:
         paths += list(exp.series.frame_paths)
+    memo_path = _user_cache_dir() / "file_hashes.json"
+    try:
+        memo = json.loads(memo_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        memo = {}
+    known = len(memo)
+    h = hashlib.sha256()
     for p in paths:
         h.update(str(Path(p).name).encode())
-        _sha256_file(p, h)
+        h.update(_file_sha256(p, memo).encode())
+    if len(memo) != known:
+        try:  # a cache that cannot be written only costs the hashing next time
+            memo_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = memo_path.with_name(f"{memo_path.name}.{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(memo), encoding="utf-8")
+            os.replace(tmp, memo_path)
+        except OSError:
+            pass
     return h.hexdigest()
 
 
