@@ -166,6 +166,7 @@ def experiment_fingerprint(exp):
         h.update(str(Path(p).name).encode())
         h.update(_file_sha256(p, memo).encode())
     if len(memo) != known:
+        memo = prune_hash_memo(memo)
         try:  # a cache that cannot be written only costs the hashing next time
             memo_path.parent.mkdir(parents=True, exist_ok=True)
             tmp = memo_path.with_name(f"{memo_path.name}.{os.getpid()}.tmp")
@@ -174,6 +175,40 @@ def experiment_fingerprint(exp):
         except OSError:
             pass
     return h.hexdigest()
+
+
+#: At most this many file hashes are remembered (newest kept).
+MAX_HASH_MEMO = 20000
+
+
+def prune_hash_memo(memo, max_entries=MAX_HASH_MEMO):
+    """Drop the remembered hashes of files that are gone or changed, keep the newest.
+
+    Parameters
+    ----------
+    memo : dict
+        ``"path|size|mtime_ns" -> sha256`` in insertion order (oldest first), as kept in
+        ``file_hashes.json``.
+    max_entries : int
+        How many entries to keep at most.
+
+    Returns
+    -------
+    dict
+        The entries whose file still exists with that size and mtime, the newest
+        ``max_entries`` of them.
+    """
+    kept = {}
+    for tag, digest in memo.items():
+        path, _, rest = tag.rpartition("|")
+        path, _, size = path.rpartition("|")
+        try:
+            st = os.stat(path)
+        except OSError:
+            continue
+        if f"{st.st_size}|{st.st_mtime_ns}" == f"{size}|{rest}":
+            kept[tag] = digest
+    return dict(list(kept.items())[-max_entries:]) if max_entries > 0 else {}
 
 
 def code_fingerprint():

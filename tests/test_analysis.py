@@ -137,3 +137,21 @@ def test_heightmap_switched_off_is_not_run(computed):
 def test_a_scheduler_that_is_not_an_address_is_refused_at_once(small_experiment):
     with pytest.raises(semlab.SemlabError, match="tcp://HOST:PORT"):
         semlab.Analysis(small_experiment, scheduler="localhost", progress=False)
+
+
+def test_the_file_hash_memo_forgets_gone_and_changed_files_and_keeps_the_newest(tmp_path):
+    files = []
+    for i in range(4):
+        p = tmp_path / f"f{i}.bin"
+        p.write_bytes(bytes([i]) * 10)
+        files.append(p)
+    memo = {}
+    for p in files:
+        analysis._file_sha256(p, memo)
+    assert len(memo) == 4
+    files[0].unlink()                       # gone
+    files[1].write_bytes(b"longer content")  # changed size: its old entry is stale
+    pruned = analysis.prune_hash_memo(memo)
+    assert sorted(pruned) == sorted(t for t in memo if "f2.bin" in t or "f3.bin" in t)
+    newest = analysis.prune_hash_memo(memo, max_entries=1)
+    assert list(newest) == [next(t for t in memo if "f3.bin" in t)]
