@@ -247,7 +247,8 @@ class Analysis:
     scheduler : str, optional
         ``tcp://HOST:PORT`` of a running dask.distributed scheduler: the tiled steps (dense
         IC-GN, tracking) run on that cluster (see :mod:`semlab.parallel`); None: a local
-        cluster, or the one ``semlab run --scheduler`` named. Checked when given.
+        cluster, or the one ``semlab run --scheduler`` named. Checked when given; it applies to this analysis only (not to
+        other analyses in the same kernel).
     **changes
         Settings that replace those of ``config`` (unknown names raise ``TypeError``).
 
@@ -281,9 +282,10 @@ class Analysis:
         from .experiment import Experiment, load
 
         if scheduler:
-            from .parallel import set_default_scheduler
+            from .parallel import check_scheduler
 
-            set_default_scheduler(scheduler)  # a wrong address fails here, not mid-run
+            check_scheduler(scheduler)  # a wrong address fails here, not mid-run
+        self.scheduler = scheduler or None
         self.experiment = experiment if isinstance(experiment, Experiment) else load(experiment)
         if config is None:
             config = AnalysisConfig()
@@ -346,7 +348,10 @@ class Analysis:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                entry = ("ok", compute())
+                from .parallel import scheduler_scope
+
+                with scheduler_scope(self.scheduler):  # this analysis' cluster, not the process'
+                    entry = ("ok", compute())
             except SemlabError as exc:
                 entry = ("failed", str(exc))
         said = list(dict.fromkeys(str(w.message) for w in caught))

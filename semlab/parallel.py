@@ -51,7 +51,7 @@ import numpy as np
 from .errors import SemlabError, TrackingError
 
 __all__ = ["SCHEDULER_ENV", "DEFAULT_TILE_PX", "Tile", "plan_tiles", "dask_client",
-           "set_default_scheduler", "map_tiles", "tiled_icgn", "tiled_track_reverse",
+           "set_default_scheduler", "scheduler_scope", "check_scheduler", "map_tiles", "tiled_icgn", "tiled_track_reverse",
            "tiled_dense_parallax"]
 
 #: Environment variable holding the default scheduler address (``tcp://HOST:PORT``).
@@ -119,11 +119,35 @@ def set_default_scheduler(address, check=True):
     if not address:
         os.environ.pop(SCHEDULER_ENV, None)
         return
-    _check_address(address)
     if check:
-        with dask_client(str(address)):
-            pass
-    os.environ[SCHEDULER_ENV] = str(address)
+        check_scheduler(address)
+    os.environ[SCHEDULER_ENV] = _check_address(address)
+
+
+def check_scheduler(address):
+    """Connect once to the scheduler at ``address``: a :class:`~semlab.errors.SemlabError`
+    naming the fix when it is not an address or nothing answers there."""
+    with dask_client(_check_address(address)):
+        pass
+
+
+@contextlib.contextmanager
+def scheduler_scope(address):
+    """Within the ``with`` block, ``address`` is the default scheduler (``SEMLAB_SCHEDULER``);
+    the previous default is restored afterwards, so two analyses with different clusters in
+    one Jupyter kernel do not change each other's. ``None`` or ``""`` leaves it unchanged."""
+    if not address:
+        yield
+        return
+    before = os.environ.get(SCHEDULER_ENV)
+    os.environ[SCHEDULER_ENV] = _check_address(address)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(SCHEDULER_ENV, None)
+        else:
+            os.environ[SCHEDULER_ENV] = before
 
 
 def _check_address(address):

@@ -262,3 +262,23 @@ def test_cli_run_takes_a_scheduler(monkeypatch, tmp_path, capsys):
     assert main(["run", str(tmp_path), "--out", str(tmp_path / "o"),
                  "--scheduler", "nonsense"]) == 2
     assert "tcp://HOST:PORT" in capsys.readouterr().err
+
+
+def test_an_analysis_scheduler_applies_to_that_analysis_only(loopback_cluster, monkeypatch,
+                                                             small_experiment, tmp_path):
+    import os
+
+    import semlab
+
+    monkeypatch.delenv(parallel.SCHEDULER_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))   # the probe's cache entry goes there
+    a = semlab.Analysis(small_experiment, scheduler=loopback_cluster, progress=False)
+    assert parallel.SCHEDULER_ENV not in os.environ     # the process default is untouched
+    seen = []
+    a._cached("probe", {}, lambda: seen.append(os.environ.get(parallel.SCHEDULER_ENV)))
+    assert seen == [loopback_cluster]                   # ... but its steps run on its cluster
+    assert parallel.SCHEDULER_ENV not in os.environ
+    monkeypatch.setenv(parallel.SCHEDULER_ENV, "tcp://127.0.0.1:1")
+    with parallel.scheduler_scope(loopback_cluster):
+        assert os.environ[parallel.SCHEDULER_ENV] == loopback_cluster
+    assert os.environ[parallel.SCHEDULER_ENV] == "tcp://127.0.0.1:1"   # restored
