@@ -129,6 +129,20 @@ def _gradient_noise_gain(smooth_sigma_px):
     return filter_noise_gain(grad)
 
 
+@functools.lru_cache(maxsize=16)
+def _smoothed_gradient_noise_gain(smooth_sigma_px):
+    """White-noise variance gain of the smoothed B-spline x gradient ``K ∇(K n)``: the
+    noise part of ``Hk`` (:func:`_covariance`); equal to :func:`_gradient_noise_gain`
+    without smoothing."""
+    if not smooth_sigma_px:
+        return _gradient_noise_gain(smooth_sigma_px)
+
+    def grad(a):
+        coef = ndimage.spline_filter(_smooth(a, smooth_sigma_px), order=3, mode="mirror")
+        return _smooth(_spline_gradients(coef)[0], smooth_sigma_px)
+    return filter_noise_gain(grad)
+
+
 def _noise_variances(noise_sigma, ref, cur):
     """(s_ref², s_cur²) from the ``noise_sigma`` argument of :func:`icgn_refine`."""
     if noise_sigma is None or (isinstance(noise_sigma, str) and noise_sigma == "calibrated"):
@@ -344,7 +358,8 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
                affine=(warp == "affine"),
                max_iter=max_iter, tol=float(tol_px),
                noise_gain=_smoothing_variance_gain(smooth_sigma_px),
-               noise_var=noise_var, grad_gain=_gradient_noise_gain(smooth_sigma_px))
+               noise_var=noise_var, grad_gain=_gradient_noise_gain(smooth_sigma_px),
+               kgrad_gain=_smoothed_gradient_noise_gain(smooth_sigma_px))
     chunk = max(32, _CHUNK_PIX // xi.shape[1])                # subsets per chunk
     chunks = [idx[i:i + chunk] for i in range(0, len(idx), chunk)]
 
@@ -703,9 +718,13 @@ def _covariance(ctx, Hs, Hk, Hinv, B, rvar, ratio, e):
     good[good] &= np.linalg.eigvalsh(H0[good])[:, 0] > 0
     H0i = np.zeros_like(Hs)
     H0i[good] = np.linalg.inv(H0[good])
-    C = np.matmul(np.matmul(H0i, Hk), H0i)
     s2 = sf2 + np.nan_to_num(ratio) ** 2 * sg2
-    var = np.einsum("nai,nij,naj->na", e, C, e) * s2[:, None]
+    # Middle term E[Jᵀn nᵀJ]: the reference noise's gradients meet the reference noise
+    # itself in an antisymmetric quadratic form (odd gradient kernel, even smoothing
+    # kernel), which vanishes, so only the current image's noise multiplies the noise part
+    # of Hk: s² Hk0 + s_f² s_g'² γ_K ΣBBᵀ = s² Hk − s_f⁴ γ_K ΣBBᵀ.
+    M = Hk * s2[:, None, None] - (sf2 * sf2 * ctx["kgrad_gain"]) * Hn
+    var = np.einsum("nai,nij,naj->na", e, np.matmul(np.matmul(H0i, M), H0i), e)
     var[~good] = np.inf
     with np.errstate(invalid="ignore", divide="ignore"):
         rr = (rvar / gain) / s2

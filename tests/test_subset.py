@@ -367,7 +367,8 @@ def test_dic_challenge_sample5():
 
 
 # ------------------------------------------------------- predicted error from the covariance
-@pytest.mark.parametrize("noise,h,smooth", [(3.0, 10, 0.8), (6.0, 8, 0.8), (1.5, 8, 0.0)])
+@pytest.mark.parametrize("noise,h,smooth", [(3.0, 10, 0.8), (6.0, 8, 0.8), (1.5, 8, 0.0),
+                                              (6.0, 12, 0.0), (9.0, 14, 0.0)])
 def test_predicted_sigma_matches_empirical_error(noise, h, smooth):
     """sigma_px (Gauss-Newton covariance, noise measured from the images) is within 20 %
     of the RMS error over many noise draws of a known sub-pixel shift, and the error bars
