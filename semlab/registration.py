@@ -47,6 +47,7 @@ __all__ = [
     "fit_transform",
     "estimate_transform",
     "refine_ecc",
+    "rigid_region_mask",
     "register_pair",
     "register_frames",
     "register_points",
@@ -165,12 +166,13 @@ _ECC_MOTION = {"translation": cv2.MOTION_TRANSLATION, "similarity": cv2.MOTION_A
                "affine": cv2.MOTION_AFFINE}
 
 
-def refine_ecc(ref, img, init, model="affine", max_iter=100, eps=1e-6, gauss_size=1):
+def refine_ecc(ref, img, init, model="affine", max_iter=100, eps=1e-6, gauss_size=1, mask=None):
     """Refine ``T`` (``ref`` pixels → ``img`` pixels) by maximising the enhanced correlation
     coefficient (Evangelidis & Psarakis 2008, ``cv2.findTransformECC``).
 
     The ECC is invariant to brightness and contrast changes. For ``model="similarity"`` an
-    affine ECC is run and its nearest similarity (least squares over the image) is returned.
+    affine ECC is run and its nearest similarity (least squares over the pixels it was
+    measured on: the image, or ``mask``) is returned.
 
     Parameters
     ----------
@@ -182,6 +184,9 @@ def refine_ecc(ref, img, init, model="affine", max_iter=100, eps=1e-6, gauss_siz
         Gaussian pre-smoothing kernel of OpenCV's ECC (odd; 1: none). Smoothing made ECC
         converge 2-4 px off on low-contrast synthetic frames whose topographic contrast
         differs from the reference (1 px: 0.03 px off).
+    mask : (H, W) bool array, optional
+        Pixels of ``ref`` the correlation is measured on (``cv2.findTransformECCWithMask``),
+        e.g. the rigidly moving region of :func:`rigid_region_mask`; default all.
 
     Returns
     -------
@@ -199,30 +204,92 @@ def refine_ecc(ref, img, init, model="affine", max_iter=100, eps=1e-6, gauss_siz
     b = normalize_frame(_as_2d(img, "img"))[0]
     W = init.affine.astype(np.float32)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iter), float(eps))
+    h, w = a.shape
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != a.shape:
+            raise GeometryError(f"the ECC mask has shape {mask.shape} but ref has {a.shape}")
+        if mask.sum() < 100:
+            raise GeometryError(f"the ECC mask has only {int(mask.sum())} pixels (need 100)")
     try:
-        rho, W = cv2.findTransformECC(a, b, W, _ECC_MOTION[model], crit, None, int(gauss_size))
+        if mask is None:
+            rho, W = cv2.findTransformECC(a, b, W, _ECC_MOTION[model], crit, None, int(gauss_size))
+        else:
+            rho, W = cv2.findTransformECCWithMask(a, b, mask.astype(np.uint8) * 255,
+                                                  np.full(b.shape, 255, np.uint8), W,
+                                                  _ECC_MOTION[model], crit, int(gauss_size))
     except cv2.error as exc:
         raise GeometryError(f"ECC refinement did not converge: {str(exc).strip().splitlines()[-1]}")
     T = Transform2D(W.astype(float))
     if model == "similarity":
-        h, w = a.shape
-        g = np.stack(np.meshgrid(np.linspace(0, w - 1, 8), np.linspace(0, h - 1, 8)), -1).reshape(-1, 2)
+        if mask is None:
+            g = np.stack(np.meshgrid(np.linspace(0, w - 1, 8), np.linspace(0, h - 1, 8)),
+                         -1).reshape(-1, 2)
+        else:
+            g = np.argwhere(mask)[::7, ::-1].astype(float)
         T = fit_transform(g, T(g), "similarity")
     return T, float(rho)
+
+
+def rigid_region_mask(shape, p0, residual_px, threshold_px, radius_px=12.0):
+    """The part of the reference image that moves with the inlier feature matches.
+
+    Each pixel takes the class of its nearest matched feature: an inlier
+    (``residual_px <= threshold_px``), a match that clearly moves otherwise
+    (``residual_px > 2 threshold_px``; those in between are ambiguous and ignored); it is in
+    the region when that feature is an inlier and at most ``radius_px`` away.
+
+    Parameters
+    ----------
+    shape : (H, W) of the reference image
+    p0 : (N, 2) array of (x, y) pixels of the matches in the reference image
+    residual_px : (N,) array
+        Transfer residual of each match under the transform, pixels.
+    threshold_px : float
+        Inlier threshold, pixels.
+    radius_px : float
+        Largest distance of a region pixel from an inlier, pixels.
+
+    Returns
+    -------
+    (H, W) bool array
+    """
+    p0 = np.asarray(p0, float).reshape(-1, 2)
+    r = np.asarray(residual_px, float)
+    lab = np.zeros(shape, np.int8)              # 0: no feature, 1: inlier, 2: moves otherwise
+    ij = np.clip(np.round(p0[:, ::-1]).astype(int), 0, np.array(shape) - 1)
+    out, inl = r > 2 * threshold_px, r <= threshold_px
+    lab[ij[out, 0], ij[out, 1]] = 2
+    lab[ij[inl, 0], ij[inl, 1]] = 1
+    if not inl.any():
+        return np.zeros(shape, bool)
+    dist, (ii, jj) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+    return (lab[ii, jj] == 1) & (dist <= radius_px)
 
 
 # ----------------------------------------------------------------------------- pairs, series
 
 def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0, min_inliers=10,
-                  ecc=True, init=None, features=None, n_max=5000):
-    """Global transform from ``ref`` pixels to ``img`` pixels: features, RANSAC, then ECC.
+                  ecc=True, init=None, features=None, n_max=5000, rigid_threshold_px=0.3):
+    """Global transform from ``ref`` pixels to ``img`` pixels: features, RANSAC, then ECC,
+    measured on the part of the image that moves rigidly.
+
+    A fatigued surface is not rigid: slip bands shift the strips between them by up to a few
+    pixels against each other, so a transform fitted to all features (or an ECC over the
+    whole image) averages the strips' motions, and the average depends on where the
+    features happen to be. Here the transform is that of the **largest rigidly moving
+    region** (the stage drift composed with that region's own motion):
 
     1. SIFT features matched by the ratio test (FLANN), a ``model`` transform by RANSAC
-       and least squares on the inliers (:func:`estimate_transform`);
-    2. refined by intensity (:func:`refine_ecc`), the refinement kept only when it stays
-       within ``max(0.2, 3 σ)`` px of the feature estimate everywhere in the image, ``σ``
-       its predicted error (``2 × residual / √n_inliers``): ECC can lock onto a wrong
-       optimum when the contrast differs between the images, the features do not.
+       with the loose ``ransac_threshold_px`` and least squares on the inliers
+       (:func:`estimate_transform`);
+    2. RANSAC again on those inliers with the tight ``rigid_threshold_px`` (about the
+       features' own localisation error): the largest set that moves as one;
+    3. refined by intensity (:func:`refine_ecc`) on that set's region only
+       (:func:`rigid_region_mask`), the refinement kept only when it stays within
+       ``max(0.2, 3 σ)`` px of the feature estimate everywhere in the image, ``σ`` its
+       predicted error (``2 × residual / √n_inliers``): ECC can lock onto a wrong optimum
+       when the contrast differs between the images, the features do not.
 
     Parameters
     ----------
@@ -233,19 +300,24 @@ def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0,
     ecc : bool
         Refine the feature estimate by intensity.
     init : Transform2D, optional
-        Used (and refined by ECC) when the features fail, e.g. the transform chained
-        through the neighbouring frame.
+        Used (and refined by ECC, over the whole image) when the features fail, e.g. the
+        transform chained through the neighbouring frame.
     features : list of 2 (xy, descriptors) tuples, optional
         Precomputed :func:`detect_features` of ``ref`` and ``img``.
     n_max : int
         SIFT keypoints per image.
+    rigid_threshold_px : float or None
+        Inlier threshold of the rigid-region stage (2.), pixels; kept only when it leaves
+        ``min_inliers``. None: one RANSAC at ``ransac_threshold_px`` and ECC on the whole
+        image.
 
     Returns
     -------
     dict with ``transform`` (Transform2D), ``residual_px`` (RMS transfer residual of the
     feature inliers under the final transform; NaN without features), ``n_inliers``,
-    ``ecc`` (final correlation coefficient or NaN) and ``method`` (``"features"``,
-    ``"features+ecc"``, ``"chained+ecc"``, ``"chained"``).
+    ``ecc`` (final correlation coefficient or NaN), ``method`` (``"features"``,
+    ``"features+ecc"``, ``"chained+ecc"``, ``"chained"``) and ``region_fraction`` (the
+    fraction of ``ref`` the ECC was measured on; NaN without ECC).
 
     Raises
     ------
@@ -255,28 +327,46 @@ def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0,
     fa, fb = features if features is not None else (detect_features(ref, n_max=n_max, name="ref"),
                                                     detect_features(img, n_max=n_max, name="img"))
     p0 = p1 = np.zeros((0, 2))
+    mask = None
     try:
         q0, q1 = _match_descriptors(fa, fb, ratio, "flann")
         T, inl = estimate_transform(q0, q1, model, ransac_threshold_px, min_inliers)
+        thr = ransac_threshold_px
+        if rigid_threshold_px is not None and rigid_threshold_px < ransac_threshold_px:
+            try:
+                Tr, inr = estimate_transform(q0[inl], q1[inl], model, rigid_threshold_px,
+                                             min_inliers)
+                T, thr = Tr, rigid_threshold_px
+                inl = np.flatnonzero(inl)[inr]
+            except GeometryError:
+                pass                     # too few at the tight threshold: keep the loose fit
         p0, p1 = q0[inl], q1[inl]
         method = "features"
         r = np.sqrt(np.mean(np.sum((T(p0) - p1) ** 2, axis=1)))
         tol = max(0.2, 3 * 2 * r / np.sqrt(len(p0)))
+        if thr < ransac_threshold_px:
+            mask = rigid_region_mask(np.shape(ref), q0, np.linalg.norm(T(q0) - q1, axis=1), thr)
+            # on the rigid region alone ECC cannot drift to another strip's motion: it only
+            # has to stay within the loose threshold of the features (few features, e.g. on
+            # an early low-contrast frame, leave their estimate 0.3-0.5 px off)
+            tol = max(tol, 0.5 * ransac_threshold_px)
     except GeometryError:
         if init is None:
             raise
         T, method, tol = init, "chained", 3.0
     rho = np.nan
+    frac = np.nan
     if ecc:
         try:
-            Te, rho_e = refine_ecc(ref, img, T, model)
+            Te, rho_e = refine_ecc(ref, img, T, model, mask=mask)
             if Te.distance(T, np.shape(ref)) <= tol:
                 T, method, rho = Te, method + "+ecc", rho_e
+                frac = 1.0 if mask is None else float(mask.mean())
         except GeometryError:
             pass
     res = float(np.sqrt(np.mean(np.sum((T(p0) - p1) ** 2, axis=1)))) if len(p0) else np.nan
     return {"transform": T, "residual_px": res, "n_inliers": int(len(p0)), "ecc": float(rho),
-            "method": method}
+            "method": method, "region_fraction": frac}
 
 
 @dataclass
@@ -373,7 +463,8 @@ class Registration:
 
 
 def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.75,
-                    ransac_threshold_px=2.0, min_inliers=10, n_max=5000, progress=False):
+                    ransac_threshold_px=2.0, min_inliers=10, n_max=5000, progress=False,
+                    rigid_threshold_px=0.3):
     """Register every frame of a series to its neighbour and to the reference frame.
 
     For each frame ``k`` (from the reference backwards, then forwards):
@@ -398,8 +489,10 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
         Index of the reference frame (default the last, the tracking reference).
     ecc : bool
         Refine each transform by intensity.
-    ratio, ransac_threshold_px, min_inliers, n_max
-        See :func:`register_pair`.
+    ratio, ransac_threshold_px, min_inliers, n_max, rigid_threshold_px
+        See :func:`register_pair`: each transform is that of the largest rigidly moving
+        region (stage drift composed with that region's own motion), found by RANSAC at
+        ``rigid_threshold_px`` and ECC on that region.
     progress : bool
         tqdm progress bar.
 
@@ -445,7 +538,7 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
         return feats[i]
 
     kw = dict(model=model, ratio=ratio, ransac_threshold_px=ransac_threshold_px,
-              min_inliers=min_inliers)
+              min_inliers=min_inliers, rigid_threshold_px=rigid_threshold_px)
     for k in order:
         nb = k + 1 if k < ref else k - 1
         if normalize_frame(frames[k])[1]:
@@ -468,7 +561,8 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
     return Registration(transforms=Ts, residual_px=res, n_inliers=nin, ecc=rho,
                         method=meth.astype(str), model=model, reference=ref, shape=shape,
                         params=dict(ecc=ecc, ratio=ratio, ransac_threshold_px=ransac_threshold_px,
-                                    min_inliers=min_inliers, n_max=n_max))
+                                    min_inliers=min_inliers, n_max=n_max,
+                                    rigid_threshold_px=rigid_threshold_px))
 
 
 def warp_to_reference(img, transform, shape=None, margin_px=0, order=3):

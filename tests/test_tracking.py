@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 
 from semlab.errors import GeometryError, SemlabError, TrackingError
-from semlab.registration import Transform2D, fit_transform
+from semlab.registration import Transform2D
 from semlab.tracking import (TRACKS_CSV_COLUMNS, Tracks, TrackingWarning, displacement_history,
                              displacements, median_outliers, normalize_frame,
                              shi_tomasi_seeds, track_reverse, tracks_to_records,
@@ -291,11 +291,11 @@ def test_register_tracks_through_stage_drift(series):
     tr = track_reverse(drifted, seeds, progress=False, register="similarity")
     assert tr.registration is not None and tr.registration.model == "similarity"
     for k in range(F - 1):
-        # the registration holds the drift and the material's own mean motion (which no
-        # image registration tells apart; up to 2 px here, non-uniform): the accuracy of the
-        # drift itself is tested in test_registration.py
-        Tt = fit_transform(true_xy[-1], true_d[k], "similarity")
-        assert tr.registration.transforms[k].distance(Tt, (h, w)) < 1.5, k
+        # the registration holds the drift and the motion of the largest rigidly moving
+        # part of the material (slip bands move the rest by up to 2 px): it maps a good
+        # share of the points onto their true positions (accuracy: test_registration*.py)
+        e = np.linalg.norm(tr.registration.transforms[k](true_xy[-1]) - true_d[k], axis=1)
+        assert np.mean(e < 0.3) > 0.2, (k, np.mean(e < 0.3))
         assert Transform2D(_drift(k, F)).distance(Transform2D.identity(), (h, w)) > 15
     err = np.linalg.norm(tr.xy - true_d, axis=2)
     assert np.array_equal(tr.xy[-1], seeds)
