@@ -1,0 +1,113 @@
+"""Variational parallax refinement: steps kept sharp, flat low texture beaten, honest σ."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab import heightmap as hm, variational as va
+from semlab.errors import ImageError, SemlabError
+
+
+def _texture(shape, seed=0, sigma=1.2):
+    rng = np.random.default_rng(seed)
+    t = ndimage.gaussian_filter(rng.normal(size=shape), sigma)
+    return t / t.std()
+
+
+def _warp(img, dx):
+    """view1(x + dx(x), y) = img(x, y): sample img at x - dx (dx smooth or not)."""
+    hgt, wid = img.shape
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
+    return ndimage.map_coordinates(img, [yy, xx - dx], order=3, mode="reflect")
+
+
+def _pair(shape, dx, noise, seed=0, tex_sigma=1.2, gain=1.0):
+    rng = np.random.default_rng(seed + 10)
+    img = _texture(shape, seed, tex_sigma)
+    v1 = gain * _warp(img, dx) + 0.3 + rng.normal(0, noise, shape)
+    return img + rng.normal(0, noise, shape), v1
+
+
+def test_step_stays_sharp_with_the_right_amplitude():
+    shape = (80, 96)
+    x = np.arange(96)[None, :] * np.ones((80, 1))
+    step = np.where(x >= 48, 1.0, 0.0)
+    v0, v1 = _pair(shape, step, 0.05, seed=1)
+    g, _, _ = hm.initial_guess(v0, v1)
+    p0 = g[..., 0] - x
+    par, sig, valid = va.refine_parallax(v0, v1, p0)
+    assert valid[10:-10, 10:-10].all()
+    prof = np.median(par[20:60], axis=0)
+    rise = np.flatnonzero((prof > 0.1) & (prof < 0.9))
+    rise = rise[(rise > 30) & (rise < 66)]
+    assert len(rise) <= 3, prof[36:60].round(2)
+    assert np.abs(prof[20:40]).max() < 0.03 and np.abs(prof[56:76] - 1).max() < 0.03
+
+
+@pytest.fixture(scope="module")
+def flat_low_texture():
+    """Weak texture (contrast 0.3 of the noise-free image over noise 0.25), a gentle slope."""
+    shape = (96, 128)
+    x = np.arange(128)[None, :] * np.ones((96, 1))
+    true = 0.4 + 0.002 * x
+    v0, v1 = _pair(shape, true, 0.25, seed=4, tex_sigma=1.5, gain=0.8)
+    sub = hm.dense_parallax(v0, v1)
+    return v0, v1, true, sub, x
+
+
+def test_flat_low_texture_beats_the_subset_map(flat_low_texture):
+    v0, v1, true, sub, x = flat_low_texture
+    p0 = np.stack([sub.x1_px - x, sub.y1_px - np.arange(96)[:, None]], -1)
+    par, sig, valid, info = va.refine_parallax(v0, v1, p0, sub.valid, return_info=True)
+    inner = (slice(12, -12), slice(12, -12))
+    both = valid[inner] & sub.valid[inner]
+    assert valid[inner].mean() > 0.99 and both.mean() > 0.5
+    e_var = (par - true)[inner][both]
+    e_sub = (sub.x1_px - x - true)[inner][both]
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    assert rms(e_var) < 0.7 * rms(e_sub), (rms(e_var), rms(e_sub))
+    assert info["prior_scale_px"] > 0 and np.all(np.abs(info["epipolar"]) < 0.05)
+
+
+def test_sigma_covers_the_error(flat_low_texture):
+    v0, v1, true, sub, x = flat_low_texture
+    par, sig, valid = va.refine_parallax(v0, v1, sub.x1_px - x, sub.valid)
+    inner = (slice(12, -12), slice(12, -12))
+    v = valid[inner]
+    t = np.abs(par - true)[inner][v] / sig[inner][v]
+    assert np.mean(t < 1) > 0.6 and np.mean(t < 2) > 0.93, (np.mean(t < 1), np.mean(t < 2))
+    # conservative (the prior allows more relief than this flat patch has) but not vacuous
+    err = np.sqrt(np.mean((par - true)[inner][v] ** 2))
+    assert np.median(sig[inner][v]) < 3 * err, (np.median(sig[inner][v]), err)
+    # the noise-only σ (no prior term) is smaller than the posterior one
+    _, sig_n, _ = va.refine_parallax(v0, v1, sub.x1_px - x, sub.valid,
+                                     params=va.VariationalParams(sigma_mode="noise"))
+    assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
+
+
+def test_roi_is_a_window_of_the_whole_map(flat_low_texture):
+    v0, v1, true, sub, x = flat_low_texture
+    p0 = np.where(sub.valid, sub.x1_px - x, np.nan)
+    whole, _, wv = va.refine_parallax(v0, v1, p0)
+    roi = (40, 30, 90, 70)
+    par, sig, valid = va.refine_parallax(v0, v1, p0, roi=roi)
+    assert par.shape == (40, 50) and valid.all()
+    # the margin keeps the window close to the whole-image solution
+    assert np.nanmax(np.abs(par - whole[30:70, 40:90])) < 0.05
+
+
+def test_bad_inputs_raise():
+    img = _texture((40, 50))
+    zero = np.zeros((40, 50))
+    bad = img.copy()
+    bad[3, 4] = np.nan
+    with pytest.raises(ImageError, match="NaN"):
+        va.refine_parallax(bad, img, zero)
+    with pytest.raises(ImageError, match="one shape"):
+        va.refine_parallax(img, img[:, :-1], zero)
+    with pytest.raises(SemlabError, match="parallax0"):
+        va.refine_parallax(img, img, zero[:-1])
+    with pytest.raises(SemlabError, match="valid0"):
+        va.refine_parallax(img, img, zero, np.ones((3, 3), bool))
+    with pytest.raises(SemlabError, match="roi"):
+        va.refine_parallax(img, img, zero, roi=(10, 10, 5, 20))
