@@ -76,6 +76,10 @@ class AnalysisConfig:
     heightmap : bool
         Compute the dense height map (a subset at every pixel of view 0: minutes on
         megapixel views); False leaves the height-map files out.
+    heightmap_roi : (x0, y0, x1, y1) or None
+        Map only this half-open window of view-0 pixels (None: the whole view). Views of
+        more than ``semlab.tiled_stereo.DEFAULT_TILING.min_pixels`` pixels are mapped in
+        tiles either way.
     """
 
     stereo_method: str | None = None
@@ -84,8 +88,20 @@ class AnalysisConfig:
     track_method: str = "lk"
     gauge_length_px: float | None = None
     heightmap: bool = True
+    heightmap_roi: tuple | None = None
 
     def __post_init__(self):
+        if self.heightmap_roi is not None:
+            r = self.heightmap_roi
+            try:
+                ok = (len(r) == 4 and all(int(v) == v for v in r) and r[0] < r[2]
+                      and r[1] < r[3] and min(r) >= 0)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise SemlabError(f"heightmap_roi = {r!r}: give [x0, y0, x1, y1], whole view-0 "
+                                  "pixels with x0 < x1 and y0 < y1 (half-open), or None")
+            object.__setattr__(self, "heightmap_roi", tuple(int(v) for v in r))
         if self.stereo_method not in STEREO_METHODS:
             raise SemlabError(f"stereo_method = {self.stereo_method!r}: use one of "
                               "raw, refined, auto, merged (or None)")
@@ -121,7 +137,7 @@ class AnalysisConfig:
 
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
-        own = {"stereo": ("stereo_method", "n_boot", "seed"), "heightmap": (),
+        own = {"stereo": ("stereo_method", "n_boot", "seed"), "heightmap": ("heightmap_roi",),
                "tracking": ("track_method",),
                "strain": ("gauge_length_px",)}
         needs = {"stereo": ("stereo",), "heightmap": ("stereo",),
@@ -453,6 +469,8 @@ class Analysis:
             The bands are the clicked cracks (``crack_id``) and the straight traces found in
             the map (:func:`semlab.metrology.map_bands`).
         """
+        import numpy as np
+
         from . import heightmap, metrology
 
         exp = self.experiment
@@ -463,9 +481,17 @@ class Analysis:
 
         def compute():
             res = self.stereo()
-            hm = heightmap.heightmap_from_stereo(exp, res, progress=self.progress)
+            try:
+                hm = heightmap.heightmap_from_stereo(exp, res, progress=self.progress,
+                                                     roi=self.config.heightmap_roi)
+            except SemlabError as exc:
+                if "roi must be" not in str(exc):
+                    raise
+                raise StepFailed(f"heightmap_roi = {list(self.config.heightmap_roi)}: "
+                                 f"outside the views ({exc})") from None
             bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
-                                        pts_px=res.pts[:, 0], crack_id=res.crack_id)
+                                        pts_px=res.pts[:, 0] - np.asarray(hm.roi[:2], float),
+                                        crack_id=res.crack_id)
             return hm, bands
 
         def write(result, folder):

@@ -697,6 +697,11 @@ def dense_heights(view0, view1, tilt_deg=None, pixel_size_um=None, seeds=None, r
         cx = (np.shape(view0)[1] - 1) / 2.0
         model = height_model_from_tilts(tilt_deg[0], tilt_deg[1], pixel_size_um, cx)
     par = dense_parallax(view0, view1, seeds=seeds, roi=roi, params=params, progress=progress)
+    return _heights(par, model, pixel_size_um)
+
+
+def _heights(par, model, pixel_size_um):
+    """:class:`HeightMap` of a :class:`DenseParallax` under ``model``."""
     gx, gy = par.grid()
     z = model.height(par.x1_px, par.y1_px, gx, gy)
     sz = model.sigma(par.sigma_px, par.sigma_y_px)
@@ -707,7 +712,8 @@ def dense_heights(view0, view1, tilt_deg=None, pixel_size_um=None, seeds=None, r
                      model=model)
 
 
-def heightmap_from_stereo(exp, stereo, params=None, progress=False):
+def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, tiling=None,
+                          scheduler=None):
     """Dense height map of an experiment's views 0 and 1, consistent with its sparse result.
 
     Parameters
@@ -716,6 +722,14 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False):
     stereo : semlab.pipeline.StereoResult
         Its matches seed the guess and its heights fix the :class:`HeightModel` (so the
         map is above the same reference plane as ``points3d.csv``).
+    roi : (x0, y0, x1, y1), optional
+        Half-open window of view-0 pixels to map (default the whole view).
+    tiling : semlab.tiled_stereo.TilingParams, optional
+        Views of more than ``tiling.min_pixels`` pixels are mapped in tiles with one
+        calibration (:func:`semlab.tiled_stereo.tiled_parallax`; default
+        ``DEFAULT_TILING``).
+    scheduler : str, optional
+        Where the tiles run (see :func:`semlab.parallel.dask_client`).
 
     Returns
     -------
@@ -741,7 +755,18 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False):
                                         exp.pixel_size_um, cx)
         notes.append(f"only {len(stereo.pts)} points: heights from the tilts above the "
                      "camera model's z = 0 plane, not the points' reference plane")
-    hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
-                       seeds=stereo.pts[:, :2], params=params, model=model, progress=progress)
+    from .tiled_stereo import DEFAULT_TILING, tiled_parallax
+
+    t = tiling or DEFAULT_TILING
+    if t.tiles(np.shape(views[0])):
+        par = tiled_parallax(views[0], views[1], seeds=stereo.pts[:, :2], roi=roi,
+                             params=params, tiling=t, scheduler=scheduler, progress=progress)
+        hm = _heights(par, model, exp.pixel_size_um)
+        notes.append(f"mapped in {t.dense_tile_px} px tiles with one calibration "
+                     "(semlab.tiled_stereo.tiled_parallax)")
+    else:
+        hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
+                           seeds=stereo.pts[:, :2], roi=roi, params=params, model=model,
+                           progress=progress)
     hm.notes.extend(notes)
     return hm

@@ -282,7 +282,7 @@ class AutoMatchParams:
     max_half_window: int = 28
 
 
-def auto_match(images, params=None, *, progress=True, **overrides):
+def auto_match(images, params=None, *, progress=True, features=None, **overrides):
     """Automatic dense correspondences between SEM views.
 
     Called as ``auto_match(images, params)`` with an :class:`AutoMatchParams`, or with
@@ -347,6 +347,10 @@ def auto_match(images, params=None, *, progress=True, **overrides):
         Seed of RANSAC and of the ``max_points`` subsampling.
     progress : bool
         Show progress bars.
+    features : dict, optional
+        ``{j: (src, dst)}``: feature matches ``(M, 2)`` of ``(x, y)`` pixels between the
+        reference view and view ``j`` to use instead of detecting them (stage 1); the
+        tiles of :func:`semlab.tiled_stereo.tiled_auto_match` share the whole views'.
     search_px : int
         ZNCC search radius around the predicted position.
     smooth_sigma_px : float or None
@@ -472,8 +476,11 @@ def auto_match(images, params=None, *, progress=True, **overrides):
     for j in range(v):
         if j == ref:
             continue
-        src, dst = match_features(ref8, _to_uint8(ims[j]), ratio=ratio, detector=detector,
-                                  n_max=max_features, cache=ref_cache)
+        if features is not None and j in features:       # given (tiles: the whole view's)
+            src, dst = (np.asarray(a, float) for a in features[j])
+        else:
+            src, dst = match_features(ref8, _to_uint8(ims[j]), ratio=ratio, detector=detector,
+                                      n_max=max_features, cache=ref_cache)
         if len(src) < 6:
             raise GeometryError(f"only {len(src)} feature matches between views {ref} and {j}; "
                                 "the views do not overlap or have too little texture")

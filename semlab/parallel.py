@@ -52,7 +52,7 @@ from .errors import SemlabError, TrackingError
 
 __all__ = ["SCHEDULER_ENV", "DEFAULT_TILE_PX", "Tile", "plan_tiles", "dask_client",
            "set_default_scheduler", "scheduler_scope", "check_scheduler", "map_tiles", "tiled_icgn", "tiled_track_reverse",
-           "tiled_dense_parallax"]
+           "tiled_dense_parallax", "map_roi_tiles"]
 
 #: Environment variable holding the default scheduler address (``tcp://HOST:PORT``).
 SCHEDULER_ENV = "SEMLAB_SCHEDULER"
@@ -703,81 +703,11 @@ def _local_registration(reg, origin, shape):
 
 
 # --------------------------------------------------------------------------- dense map
-def _dense_task(v0, v1, roi, params):
-    from .heightmap import dense_parallax
+def __getattr__(name):
+    # the tiled dense map lives with the run's other tiled stereo steps
+    # (semlab.tiled_stereo, which imports this module)
+    if name in ("tiled_dense_parallax", "map_roi_tiles"):
+        from . import tiled_stereo
 
-    p = dense_parallax(v0, v1, roi=roi, params=params)
-    return p.x1_px, p.y1_px, p.sigma_px, p.sigma_y_px, p.valid, p.zncc, p.sigma_scale
-
-
-def tiled_dense_parallax(view0, view1, roi=None, params=None, *, max_parallax_px=32.0,
-                         tile_px=512, scheduler=None, progress=True):
-    """:func:`semlab.heightmap.dense_parallax` of a large pair, tile by tile on the cluster.
-
-    Each core tile is one ``dense_parallax(view0, view1, roi=tile)`` call, run on crops of
-    both views that reach ``params.margin_px()`` + ``max_parallax_px`` + the IC-GN search
-    pad beyond the tile, so it is that call bit for bit (tested) while holding only the
-    crops. This is the tiling :mod:`semlab.heightmap` is built for: a window's result
-    depends only on the images within ``margin_px`` of it, except for its initial guess
-    (DIS flow of the window, not of the whole image: IC-GN converges to the same match
-    within its tolerance) and its σ scale (measured per tile, so it is local).
-
-    Parameters
-    ----------
-    view0, view1 : (H, W) arrays
-    roi : (x0, y0, x1, y1), optional
-        Half-open window of view-0 pixels; default the whole image.
-    params : semlab.heightmap.DenseParams, optional
-    max_parallax_px : float
-        Largest |parallax| (view-1 position minus view-0 position), pixels. Larger
-        parallax (tall objects: use seeds and :func:`~semlab.heightmap.dense_parallax` on
-        the whole pair) is clipped at the crop and flagged invalid near it.
-    tile_px : int
-        Core tile size, pixels (multiple of 16; a dense tile holds one subset per pixel).
-    scheduler, progress : see :func:`tiled_icgn`.
-
-    Returns
-    -------
-    semlab.heightmap.DenseParallax
-        Over ``roi``; ``sigma_scale`` is the median of the tiles' scales.
-    """
-    from .heightmap import DenseParallax, DenseParams, _as_view, _check_roi
-
-    p = params or DenseParams()
-    v0, v1 = np.asarray(view0), np.asarray(view1)
-    if v0.shape != v1.shape:
-        _as_view(v0, "view0")
-        raise SemlabError(f"view0 and view1 must have one shape, got {v0.shape} and {v1.shape}")
-    roi = _check_roi(roi, v0.shape)
-    H, W = v0.shape
-    reach = p.margin_px() + float(max_parallax_px) + 2 * int(p.half_window) + 10
-    plans = []
-    for t in plan_tiles((roi[3] - roi[1], roi[2] - roi[0]), tile_px):
-        r = (roi[0] + t.x0, roi[1] + t.y0, roi[0] + t.x1, roi[1] + t.y1)
-        y0, y1, x0, x1 = _box((r[0], r[1]), (r[2] - 1, r[3] - 1), reach, (H, W))
-        plans.append((r, (y0, y1, x0, x1)))
-
-    def jobs():
-        for i, (r, (y0, y1, x0, x1)) in enumerate(plans):
-            yield i, (np.asarray(v0[y0:y1, x0:x1]), np.asarray(v1[y0:y1, x0:x1]),
-                      (r[0] - x0, r[1] - y0, r[2] - x0, r[3] - y0), p)
-
-    shape = (roi[3] - roi[1], roi[2] - roi[0])
-    out = [np.full(shape, np.nan) for _ in range(4)]
-    valid = np.zeros(shape, bool)
-    zn = np.full(shape, -1.0)
-    scales = []
-    with dask_client(scheduler) as client:
-        for i, res in map_tiles(client, _dense_task, jobs(), len(plans), "dense tiles",
-                                progress):
-            (rx0, ry0, rx1, ry1), (_, _, x0, _) = plans[i]
-            sl = (slice(ry0 - roi[1], ry1 - roi[1]), slice(rx0 - roi[0], rx1 - roi[0]))
-            x1p, y1p, sx, sy, ok, z, k = res
-            out[0][sl], out[1][sl] = x1p + x0, y1p + plans[i][1][0]
-            out[2][sl], out[3][sl] = sx, sy
-            valid[sl], zn[sl] = ok, z
-            scales.append(k)
-    return DenseParallax(x1_px=out[0], y1_px=out[1], sigma_px=out[2], sigma_y_px=out[3],
-                         valid=valid, zncc=zn, roi=roi,
-                         sigma_scale=float(np.median(scales)) if scales else float("nan"),
-                         params=p)
+        return getattr(tiled_stereo, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -144,6 +144,7 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     (True, True)
     """
     from . import matching
+    from .tiled_stereo import run_auto_match
 
     if method in ("raw", "refined") and clicks is None:
         raise SemlabError(f"method {method!r} needs hand-clicked correspondences; the experiment "
@@ -161,7 +162,8 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
                           f"({', '.join(sorted(set(map(str, np.asarray(r.reason)[~ok]))))})",
                           SemlabWarning, stacklevel=2)
     if method in ("auto", "merged"):
-        a = matching.auto_match(views, progress=progress, **(auto_kw or {}))
+        # views larger than DEFAULT_TILING.min_pixels are matched in tiles
+        a = run_auto_match(views, progress=progress, **(auto_kw or {}))
         ok = np.asarray(a.valid)
         apts = a.pts[ok]
         if parts:  # drop automatic points that duplicate a clicked one
@@ -350,11 +352,11 @@ def vanishing_summary(lines):
 def match_for_tilts(exp, progress=True):
     """Matches for the tilt estimation of 3+ views: square subsets, the middle view as the
     matching reference (see :func:`choose_tilts`). Returns (M, V, 2) valid matches, pixels."""
-    from . import matching
+    from .tiled_stereo import run_auto_match
 
     v = len(exp.stereo.view_paths)
-    m = matching.auto_match(exp.views(), ref_view=(v - 1) // 2, band_aware=False,
-                            progress=progress)
+    m = run_auto_match(exp.views(), ref_view=(v - 1) // 2, band_aware=False,
+                       progress=progress)
     return m.pts[m.valid]
 
 
@@ -483,6 +485,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
 
         from .matching import AutoMatchParams
         calib["auto_match_params"] = asdict(AutoMatchParams(**(auto_kw or {})))
+        from .tiled_stereo import DEFAULT_TILING
+        if DEFAULT_TILING.tiles(views[0].shape):
+            calib["auto_match_tiling"] = asdict(DEFAULT_TILING)
     epi = epipolar_summary(pts)
     calib["epipolar"] = epi
     lines = exp.lines()

@@ -155,3 +155,28 @@ def test_the_file_hash_memo_forgets_gone_and_changed_files_and_keeps_the_newest(
     assert sorted(pruned) == sorted(t for t in memo if "f2.bin" in t or "f3.bin" in t)
     newest = analysis.prune_hash_memo(memo, max_entries=1)
     assert list(newest) == [next(t for t in memo if "f3.bin" in t)]
+
+
+def test_heightmap_roi_maps_only_that_window(computed, tmp_path):
+    import tifffile
+
+    exp, out, an, _ = computed
+    full = tifffile.imread(out / "heightmap.tif")
+    roi = (16, 24, 80, 72)
+    other = semlab.Analysis(exp, tmp_path / "roi", n_boot=0, heightmap_roi=list(roi),
+                            progress=False)
+    assert other.config.heightmap_roi == roi
+    hm, _ = other.heightmap()
+    assert hm.roi == roi and hm.z_um.shape == (48, 64)
+    part = tifffile.imread(tmp_path / "roi" / "heightmap.tif")
+    both = np.isfinite(part) & np.isfinite(full[24:72, 16:80])
+    assert both.mean() > 0.5
+    # the window's own initial guess and σ scale: the same heights within a few nm
+    assert np.nanmedian(np.abs(part - full[24:72, 16:80])[both]) < 0.005
+    for bad in ([0, 0, 10], [5, 5, 2, 9], [0, 0, 10.5, 8], "all"):
+        with pytest.raises(semlab.SemlabError, match="heightmap_roi"):
+            semlab.AnalysisConfig(heightmap_roi=bad)
+    outside = semlab.Analysis(exp, tmp_path / "out2", n_boot=0, heightmap_roi=[0, 0, 4000, 90],
+                              progress=False)
+    with pytest.raises(analysis.StepFailed, match="outside the views"):
+        outside.heightmap()

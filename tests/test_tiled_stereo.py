@@ -1,0 +1,142 @@
+"""The run's tiled stereo steps equal the untiled ones on small scenes cut into tiles."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semlab import tiled_stereo
+from semlab.errors import SemlabError
+from semlab.heightmap import DenseParams, dense_parallax
+from semlab.matching import auto_match
+from semlab.tiled_stereo import TilingParams, tiled_auto_match, tiled_parallax
+
+
+def _pair(h=256, w=320, seed=0, drift=(0.0, 0.0)):
+    """Band-limited texture; view 1 sees it through a parallax of 0.5-2.5 px (a slow wave)
+    plus a uniform shift ``drift`` (x, y) px, both with noise."""
+    rng = np.random.default_rng(seed)
+    img = ndimage.gaussian_filter(rng.normal(size=(h + 80, w + 80)), 2.0) * 50 + 100
+    yy, xx = np.mgrid[0:h + 80, 0:w + 80].astype(float)
+    par = 1.5 + 1.0 * np.sin(xx / 40) * np.cos(yy / 50)
+    cur = ndimage.map_coordinates(img, [yy + 0.2 - drift[1], xx + par - drift[0]], order=3,
+                                  mode="mirror")
+    ref = img[40:40 + h, 40:40 + w] + rng.normal(0, 0.5, (h, w))
+    cur = cur[40:40 + h, 40:40 + w] + rng.normal(0, 0.5, (h, w))
+    return ref, cur
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return _pair()
+
+
+def test_tiled_auto_match_equals_untiled(pair):
+    ref, cur = pair
+    kw = dict(spacing_px=8, smooth_sigma_px=0.0)
+    a = auto_match([ref, cur], progress=False, **kw)
+    b = tiled_auto_match([ref, cur], tiling=TilingParams(tile_px=128, halo_px=48),
+                         progress=False, **kw)                             # 2 × 3 tiles
+    # the same grid, in the same order, each point once
+    assert np.array_equal(a.pts[:, 0], b.pts[:, 0])
+    assert np.array_equal(a.source_index, b.source_index) and b.params == a.params
+    assert (a.valid == b.valid).mean() >= 0.99 and a.valid.sum() > 900
+    ok = a.valid & b.valid
+    d = np.abs(a.pts[ok, 1] - b.pts[ok, 1]).max(axis=1)
+    # the IC-GN matches converge to the same positions; the band-aware choice between the
+    # square and the oriented subset uses σ from each tile's own noise estimate, so a few
+    # per cent of points take the other subset (differences up to ~0.06 px here)
+    assert np.median(d) < 1e-4 and (d < 1e-3).mean() >= 0.95 and d.max() < 0.1
+    # without the band-aware stage the two runs are the same matches
+    a2 = auto_match([ref, cur], progress=False, band_aware=False, **kw)
+    b2 = tiled_auto_match([ref, cur], tiling=TilingParams(tile_px=128, halo_px=48),
+                          progress=False, band_aware=False, **kw)
+    assert np.array_equal(a2.valid, b2.valid)
+    ok = a2.valid
+    assert np.abs(a2.pts[ok, 1] - b2.pts[ok, 1]).max() < 1e-3
+    assert np.array_equal(a2.subset_px, b2.subset_px)
+
+
+def test_tiled_auto_match_follows_a_drift_and_rejects_bad_grids():
+    ref, cur = _pair(h=192, w=256, seed=1, drift=(23.0, -9.0))
+    t = TilingParams(tile_px=128, halo_px=48)
+    b = tiled_auto_match([ref, cur], tiling=t, spacing_px=8, progress=False)
+    v = b.only_valid()
+    assert len(v) > 0.7 * len(b.pts)
+    shift = np.median(v.pts[:, 1] - v.pts[:, 0], axis=0)
+    assert abs(shift[0] - 21.5) < 1.0 and abs(shift[1] + 9.2) < 0.1
+    with pytest.raises(SemlabError, match="whole number"):
+        tiled_auto_match([ref, cur], tiling=t, spacing_px=7.5, progress=False)
+    with pytest.raises(SemlabError, match="max_points"):
+        tiled_auto_match([ref, cur], tiling=t, max_points=100, progress=False)
+    with pytest.raises(SemlabError, match="no parameter"):
+        tiled_auto_match([ref, cur], tiling=t, spacing=8, progress=False)
+
+
+def test_tiling_params_are_checked():
+    assert TilingParams().tiles((3072, 4096)) and not TilingParams().tiles((1536, 2048))
+    for bad in (dict(tile_px=100), dict(halo_px=-1), dict(max_parallax_px=-2.0),
+                dict(min_pixels=1.5), dict(prior_max_side_px=10)):
+        with pytest.raises(SemlabError):
+            TilingParams(**bad)
+
+
+def test_global_affine_on_downsampled_views():
+    ref, cur = _pair(h=256, w=320, seed=2, drift=(12.0, 5.0))
+    M, feats = tiled_stereo.global_affine([ref, cur], max_side_px=100)     # 4× smaller
+    c = np.array([160.0, 128.0])
+    shift = M[1][:, :2] @ c + M[1][:, 2] - c
+    assert abs(shift[0] - 10.5) < 1.5 and abs(shift[1] - 4.8) < 1.0
+    src, dst = feats[1]
+    assert len(src) >= 6 and src.max() > 200            # full-resolution pixels
+
+
+def _calibration(ref, cur, seeds, p):
+    """A calibration measured on the central 96² window, for both runs."""
+    c = dense_parallax(ref, cur, seeds=seeds, roi=(112, 80, 208, 176), params=p).calibration
+    return c
+
+
+def test_tiled_parallax_equals_one_call_with_its_calibration(pair):
+    ref, cur = pair
+    p = DenseParams(half_window=5)
+    m = auto_match([ref, cur], spacing_px=16, progress=False)
+    seeds = m.pts[m.valid]
+    roi = (64, 48, 256, 208)
+    cal = _calibration(ref, cur, seeds, p)
+    whole = dense_parallax(ref, cur, seeds=seeds, roi=roi, params=p, calibration=cal)
+    tiled = tiled_parallax(ref, cur, seeds=seeds, roi=roi, params=p, calibration=cal,
+                           tiling=TilingParams(dense_tile_px=96, max_parallax_px=8),
+                           progress=False)                                   # 2 × 2 tiles
+    assert tiled.roi == whole.roi and tiled.x1_px.shape == whole.x1_px.shape
+    assert (tiled.valid == whole.valid).mean() >= 0.995 and whole.valid.mean() > 0.9
+    ok = tiled.valid & whole.valid
+    d = np.abs(tiled.x1_px[ok] - whole.x1_px[ok])
+    # only the initial guesses differ (each tile's own flow): IC-GN converges to the same
+    # matches within its 1e-3 px tolerance
+    assert np.percentile(d, 99) < 2e-3 and d.max() < 0.05
+    ds = np.abs(tiled.sigma_px[ok] - whole.sigma_px[ok])
+    assert np.percentile(ds, 99) < 1e-3 and ds.max() < 0.02
+    assert tiled.calibration["sigma_factor"] == cal["sigma_factor"]
+
+
+def test_tiled_parallax_calibrates_once_and_takes_a_method(pair):
+    ref, cur = pair
+    p = DenseParams(half_window=5)
+    calls = []
+
+    def method(v0, v1, seeds=None, roi=None, params=None, calibration=None):
+        calls.append(dict(calibration))
+        return dense_parallax(v0, v1, seeds=seeds, roi=roi, params=params,
+                              calibration=calibration)
+
+    t = TilingParams(dense_tile_px=64, max_parallax_px=8)
+    out = tiled_parallax(ref, cur, roi=(96, 96, 224, 160), params=p, method=method, tiling=t,
+                         progress=False)
+    # one central calibration window, then 2 × 1 tiles that all get its σ factor and τ
+    assert len(calls) == 3 and "sigma_factor" not in calls[0]
+    assert all(c["sigma_factor"] == calls[1]["sigma_factor"] for c in calls[1:])
+    assert out.valid.mean() > 0.9
+    par = (out.x1_px - out.grid()[0])[out.valid]
+    assert -2.7 < np.median(par) < -0.3        # view 1 sees the texture at x - parallax
+    with pytest.raises(SemlabError, match="dense_parallax's signature"):
+        tiled_parallax(ref, cur, method="variational", tiling=t, progress=False)
