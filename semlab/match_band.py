@@ -80,19 +80,21 @@ def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length
                      smooth_sigma_px, ref_coef, cur_coef, step_deg=15.0):
     """IC-GN with thin rectangular subsets along the band direction of each point.
 
-    ``grad`` is one initial warp (6,) for all points or one per point (n, 6)."""
+    ``grad`` is one initial warp (6,) for all points or one per point (n, 6);
+    ``half_length`` one half length (pixels) for all points or one per point (n,)."""
     n = len(pts_ref)
     pts = np.full((n, 2), np.nan)
     sig = np.full(n, np.nan)
     zn = np.full(n, -1.0)
     bins = np.round(np.asarray(angles_deg) / step_deg).astype(int) % int(round(180 / step_deg))
-    for b in np.unique(bins):
-        sel = np.flatnonzero(bins == b)
-        off = oriented_subset(half_length, half_width, b * step_deg)
+    lengths = np.broadcast_to(np.asarray(half_length, int), (n,))
+    for b, hl in sorted(set(zip(bins.tolist(), lengths.tolist()))):
+        sel = np.flatnonzero((bins == b) & (lengths == hl))
+        off = oriented_subset(hl, half_width, b * step_deg)
         # thin subsets pin the across-band gradient terms weakly and IC-GN converges
         # slowly; 1e-3 px is ample for a choice made at the ~0.03 px level
         g = grad[sel] if np.ndim(grad) == 2 else grad
-        r = icgn_refine(ref_img, img, pts_ref[sel], guess[sel], half_window=half_length,
+        r = icgn_refine(ref_img, img, pts_ref[sel], guess[sel], half_window=hl,
                         init_warp=g, smooth_sigma_px=smooth_sigma_px, subset_offsets=off,
                         ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, max_iter=60,
                         tol_px=1e-3)

@@ -91,8 +91,9 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         keeps the noise of the reference gradients out of the predicted σ. None: 0.8 px
         with ``target_sigma_px``, else 0.
     band_aware : bool
-        Also match each point with a thin rectangular subset (``4h+1`` long,
-        ``2 band_half_width_px + 1`` wide) along the local direction of the parallax bands,
+        Also match each point with a thin rectangular subset (``4h+1`` long, ``h`` the
+        half size of the point's square subset, ``2 band_half_width_px + 1`` wide) along
+        the local direction of the parallax bands,
         estimated from the structure tensor of a coarse dense parallax field (every
         ``h`` pixels), and keep it where the square subset disagrees with it by more than
         ``kappa`` of its σ: near the edges of extrusions the parallax changes within a
@@ -105,7 +106,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         ``min_half_window`` up to ``max_half_window`` whose predicted σ reaches this target
         (pixels), with the shape function it supports
         (:func:`semlab.adaptive.adaptive_icgn`; ``warp`` and ``half_window`` are then
-        ignored, ``min_half_window`` sizes the band-aware subsets). None: one fixed
+        ignored; each point's band-aware subset is as long as its square is wide). None: one fixed
         ``half_window``. On the
         192×256 accuracy-matrix cells (realistic noise, ±5°) 0.05 px gave height RMSE
         35.9 / 25.2 / 15.4 nm (polished / real:fei / speckle) against 41.6 / 38.8 / 18.6 nm
@@ -193,8 +194,12 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
             start = np.where(np.isfinite(r.pts), r.pts, guess)
             sel = np.flatnonzero(np.all(np.isfinite(start), 1))
             if len(sel):
+                # each band subset as long as its point's square is wide (the square sized
+                # by information): a thin subset of the smallest square's length beside a
+                # grown square is the noisier estimate, chosen by noise alone
+                o_len = 2 * np.where(hw_j > 0, hw_j, half_window)[sel]
                 o_pts, o_sig, o_zn = _oriented_refine(
-                    ims[ref], ims[j], pr[sel], start[sel], grad, ang[sel], 2 * half_window,
+                    ims[ref], ims[j], pr[sel], start[sel], grad, ang[sel], o_len,
                     band_half_width_px, smooth_sigma_px, ref_coef, cur_coef)
                 sq = np.where(ok_j[sel, None], r.pts[sel], np.nan)
                 c_pts, c_sig, use = _combine(sq, sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
