@@ -76,16 +76,19 @@ def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sig
     return np.hypot(*(r.pts - pts_ref).T)
 
 
-def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
+def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=0):
     """Per-point residual (pixels) of the multi-view x coordinates to a rank-2 model.
 
     For an affine camera tilted about an axis near the image y axis, the x coordinates of a
     point in V views are ``u_i = cos θ_i x + sin θ_i z + ε_i y + t_i``: after removing the
     linear dependence on the reference-view y (a slightly rotated tilt axis) and the means,
     the N × V matrix of x coordinates has rank 2 (Tomasi & Kanade 1992; Hartley & Zisserman
-    2nd ed. section 18.2). The rank-2 fit is made on ``mask`` points, re-fitted without
-    the points beyond ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the
-    RMS over views of its distance to the fitted model. Needs V >= 3 (else zeros).
+    2nd ed. section 18.2). The rank-2 fit starts from the least-median-of-squares subspace
+    of ``mask`` points (:func:`_lmeds_rank2`: the height direction is spanned by the small
+    parallax, so a least-squares fit turns it towards a group of points wrong in one view
+    and hides them), and is re-fitted without the points beyond
+    ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the RMS over views of
+    its distance to the fitted model. Needs V >= 3 (else zeros).
 
     Returns
     -------
@@ -101,6 +104,7 @@ def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
     D = np.column_stack([U, y])                 # (N, V+1)
     fin = np.all(np.isfinite(D), 1)
     use = mask & fin
+    use = _lmeds_rank2(D, use, seed)
     for _ in range(n_iter):
         mu = D[use].mean(0)
         Dc = D - mu
@@ -121,3 +125,44 @@ def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0):
         use = new
     res[~fin] = np.nan
     return res, float(np.sqrt(np.mean(res[use] ** 2)))
+
+
+def _lmeds_rank2(D, use, seed, n_trial=300, quantile=0.8):
+    """Inliers of the least-quantile-of-squares rank-2 model of the rows of ``D`` (N, V+1):
+    x coordinates in V views and the reference y (Rousseeuw 1984, J. Am. Stat. Assoc.
+    79(388), with the ``quantile`` instead of the median: where most of the surface is flat
+    the median points carry no parallax and do not fix the height direction). The linear
+    dependence on y is removed by least squares over the ``use`` rows (on a grid, y is
+    independent of the material x); each trial is the plane through three sampled rows
+    (its offset included: the median of grid coordinates jumps by a grid step when a few
+    points move), the one with the smallest ``quantile`` of squared residuals wins and
+    its inliers are the rows within 3 σ, σ² from that quantile as of a χ² with V − 2
+    degrees of freedom. Returns ``use`` itself when there are under 8 rows."""
+    from scipy.stats import chi2
+
+    idx = np.flatnonzero(use)
+    if len(idx) < 8:
+        return use
+    X = D[idx] - D[idx].mean(axis=0)
+    yc = X[:, -1]
+    beta = (X[:, :-1] * yc[:, None]).sum(0) / max((yc ** 2).sum(), 1e-12)
+    R = X[:, :-1] - yc[:, None] * beta
+    rng = np.random.default_rng(seed)
+    best, best_q = None, np.inf
+    for _ in range(n_trial):
+        a, b, c = R[rng.choice(len(idx), 3, replace=False)]
+        q, rr = np.linalg.qr(np.stack([b - a, c - a], 1))
+        if abs(rr[1, 1]) < 1e-9 * max(abs(rr[0, 0]), 1e-12):
+            continue
+        Ra = R - a
+        e2 = np.sum((Ra - (Ra @ q) @ q.T) ** 2, 1)
+        qv = float(np.quantile(e2, quantile))
+        if qv < best_q:
+            best, best_q = e2, qv
+    if best is None:
+        return use
+    dof = R.shape[1] - 2
+    sig2 = best_q / chi2.ppf(quantile, dof)
+    out = np.zeros_like(use)
+    out[idx] = best <= chi2.ppf(0.997, dof) * sig2
+    return out if out.sum() >= 8 else use
