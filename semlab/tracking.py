@@ -92,6 +92,10 @@ class Tracks:
     registration : semlab.registration.Registration or None
         The frame-to-reference transforms when tracking ran in the registered geometry
         (``register=``), else None.
+    subset_px : (F, N) int array or None
+        With ``method="subset"``: side (pixels) of the square subset of each step (0 where
+        it did not converge and in the reference frame); times the pixel size it is the
+        step's spatial resolution. None for ``method="lk"``.
     """
 
     xy: np.ndarray
@@ -105,6 +109,7 @@ class Tracks:
     method: str = "lk"
     params: dict = field(default_factory=dict)
     registration: object = None
+    subset_px: np.ndarray = None
 
     @property
     def n_frames(self) -> int:
@@ -123,7 +128,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
                   max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
                   max_jump_px=None, subset_half_window=None, max_gap_frames=3,
-                  lk_check_px=0.2, register=None):
+                  lk_check_px=0.2, register=None, target_sigma_px=None, max_half_window=20):
     """Track points seeded in the last frame backwards in time to frame 0.
 
     With ``register``, every frame is first registered to the reference by one global
@@ -224,6 +229,15 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     lk_check_px : float or None
         With ``method="lk"``: largest distance between the LK position and its IC-GN
         re-match (check 8), pixels. None: no check (the plain LK of the reference paper).
+    target_sigma_px : float or None
+        With ``method="subset"``: size each track's subset per step by its information
+        (:func:`semlab.adaptive.adaptive_icgn`, affine): the smallest square subset from
+        ``subset_half_window`` up to ``max_half_window`` (half sizes growing by ~√2)
+        whose predicted 1σ reaches this target (pixels), smaller where the displacement's
+        curvature biases a larger one; ``Tracks.subset_px`` holds each step's subset
+        side. None: one fixed ``subset_half_window``.
+    max_half_window : int
+        Largest subset half size with ``target_sigma_px``.
     register : {None, "similarity", "affine", "translation"} or Registration
         Track in the registered geometry: the transform model to estimate, or a
         precomputed :class:`~semlab.registration.Registration` of these frames (reference
@@ -285,6 +299,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         bad = np.flatnonzero(~_inside(seeds, shape0))
         raise TrackingError(f"{len(bad)} seed(s) lie outside the last frame ({shape0[1]}x{shape0[0]} px), "
                             f"first index {bad[0]}: seeds are (x, y) pixels of the LAST frame")
+    if target_sigma_px is not None and not (method == "subset" and np.isfinite(
+            target_sigma_px) and target_sigma_px > 0):
+        raise TrackingError(f"target_sigma_px={target_sigma_px!r}: subsets sized by their "
+                            "information need method='subset' and a target > 0 pixels")
     win_size = int(win_size)
     if win_size < 5 or win_size % 2 == 0:
         raise TrackingError(f"win_size must be an odd integer >= 5, got {win_size}")
@@ -334,6 +352,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     sig = np.full((F, n), np.nan)
     sig[ref] = 0.0
     gap = np.zeros((F, n), int)
+    side = np.zeros((F, n), int)
 
     last_frame = np.full(n, ref)          # frame index of the last valid step
     last_pos = seeds.copy()               # position there
@@ -343,6 +362,9 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     if method == "subset" or lk_check:
         from .subset import icgn_refine, prefilter_image   # lazy: only IC-GN users need it
         hw = int(subset_half_window if subset_half_window is not None else half)
+        if target_sigma_px is not None:
+            from .adaptive import _ladder, adaptive_icgn
+            ladder = _ladder(hw, max(hw, int(max_half_window)))
         ref64 = norm[ref].astype(np.float64)
         ref_coef = prefilter_image(ref64)
         grad_last = np.zeros((n, 6))      # affine warp of each track's last valid step
@@ -391,9 +413,17 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         else:
             cur = norm[k].astype(np.float64)
             cur_coef = prefilter_image(cur)
-            res = icgn_refine(ref64, cur, seeds, guess, half_window=hw, warp="affine",
-                              init_warp=init, ref_prefiltered=ref_coef,
-                              cur_prefiltered=cur_coef)
+            if target_sigma_px is None:
+                res = icgn_refine(ref64, cur, seeds, guess, half_window=hw, warp="affine",
+                                  init_warp=init, ref_prefiltered=ref_coef,
+                                  cur_prefiltered=cur_coef)
+                hw_k = np.full(n, hw)
+            else:
+                a = adaptive_icgn(ref64, cur, seeds, guess, target_sigma_px, ladder,
+                                  warp="affine", init_warp=init, ref_prefiltered=ref_coef,
+                                  cur_prefiltered=cur_coef)
+                res, hw_k = a.subset, np.where(a.half_window > 0, a.half_window, hw)
+            side[k] = np.where(res.converged, 2 * hw_k + 1, 0)
             pos = np.asarray(res.pts, float).copy()
             ok = np.asarray(res.converged, bool) & _inside(np.nan_to_num(pos, nan=-1.0), shape0)
             pos[~ok] = np.nan
@@ -407,12 +437,15 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                 Ainv = np.linalg.inv(np.moveaxis(A, (0, 1), (1, 2)))
                 iw = np.zeros((len(okp), 6))
                 iw[:, [1, 2, 4, 5]] = (Ainv - np.eye(2)).reshape(-1, 4)
-                rb = icgn_refine(cur, ref64, pos[okp], seeds[okp], half_window=hw,
-                                 warp="affine", init_warp=iw, ref_prefiltered=cur_coef,
-                                 cur_prefiltered=ref_coef)
-                e[okp] = np.linalg.norm(np.asarray(rb.pts, float) - seeds[okp], axis=1)
                 okb = np.zeros(n, bool)
-                okb[okp] = np.asarray(rb.converged, bool)
+                for h in np.unique(hw_k[okp]):        # each with its own subset
+                    g = hw_k[okp] == h
+                    ig = okp[g]
+                    rb = icgn_refine(cur, ref64, pos[ig], seeds[ig], half_window=int(h),
+                                     warp="affine", init_warp=iw[g],
+                                     ref_prefiltered=cur_coef, cur_prefiltered=ref_coef)
+                    e[ig] = np.linalg.norm(np.asarray(rb.pts, float) - seeds[ig], axis=1)
+                    okb[ig] = np.asarray(rb.converged, bool)
                 ok &= okb
         if method == "subset":
             # the subset's own affine-warped ZNCC and Gauss-Newton sigma
@@ -464,6 +497,9 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   min_zncc=min_zncc, direct_correction=direct_correction,
                   max_sigma_px=max_sigma_px, outlier_threshold=outlier_threshold,
                   n_neighbours=n_neighbours, max_jump_px=max_jump, max_gap_frames=max_gap_frames,
-                  register=None if reg is None else reg.model)
+                  register=None if reg is None else reg.model,
+                  target_sigma_px=target_sigma_px,
+                  max_half_window=max_half_window if target_sigma_px is not None else None)
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
+                  subset_px=side if method == "subset" else None,
                   reference_frame=ref, method=method, params=params, registration=reg)

@@ -365,3 +365,27 @@ def test_run_tracking_writes_drift_and_removes_the_rigid_motion(tmp_path):
     T = Transform2D(_stage_matrix({c: truth[c][f] for c in truth if c != "frame"}, (192, 256)))
     sel = both & drift.tracks.valid[f]
     assert np.median(np.linalg.norm(drift.tracks.xy[f, sel] - T(still.tracks.xy[f, sel]), axis=1)) < 0.1
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_subset_tracking_sizes_subsets_by_information(series):
+    """target_sigma_px: each step's subset grows until its predicted σ reaches the
+    target, so the noisy low-contrast frame 0 gets larger subsets than the clear frames and
+    more valid steps than the fixed 21×21 subset; still no valid step 0.5 px off."""
+    frames, seeds, true_xy = series
+    fixed = track_reverse(frames, seeds, method="subset", progress=False)
+    tr = track_reverse(frames, seeds, method="subset", progress=False, target_sigma_px=0.02,
+                       max_half_window=20)
+    err = _errors(tr, true_xy)
+    assert not np.any(tr.valid & ~(err < 0.5))
+    assert tr.subset_px.shape == tr.valid.shape and np.all(fixed.subset_px[1][fixed.valid[1]] == 21)
+    s = tr.subset_px
+    assert np.all((s[:-1][tr.valid[:-1]] >= 21) & (s[:-1][tr.valid[:-1]] <= 41))
+    assert np.median(s[0][tr.valid[0]]) > np.median(s[-2][tr.valid[-2]])
+    assert tr.valid[0].sum() > fixed.valid[0].sum()
+    # the larger subsets give those steps a smaller predicted σ than the fixed ones
+    v0 = tr.valid[0]
+    assert np.median(tr.sigma_px[0][v0]) < 0.7 * np.median(fixed.sigma_px[0][v0])
+    assert tr.params["target_sigma_px"] == 0.02
+    with pytest.raises(TrackingError, match="method='subset'"):
+        track_reverse(frames, seeds, method="lk", target_sigma_px=0.02, progress=False)
