@@ -44,14 +44,17 @@ def sample5(rows, speed):
     ref, cur = _read(ref_p), _read(cur_p)
     seeds = shi_tomasi_seeds(cur, border_px=25)
     true = np.array([0.10, 0.10])                 # material displacement reference -> 001
-    for method, kw in (("lk", {}), ("subset", {}), ("subset", {"subset_half_window": 15})):
+    for method, kw in (("lk", {}), ("subset", {}), ("subset", {"subset_half_window": 15}),
+                       ("subset", {"target_sigma_px": 0.005})):
         t0 = time.perf_counter()
         tr = track_reverse([ref, cur], seeds, method=method, progress=False, **kw)
         dt = time.perf_counter() - t0
         v = tr.valid[0]
         d_ = tr.xy[1, v] - tr.xy[0, v]
         e = d_ - true
-        label = method + (f" (h={kw['subset_half_window']})" if kw else
+        label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20)"
+                          if "target_sigma_px" in kw else
+                          f" (h={kw['subset_half_window']})" if kw else
                           (" (h=10)" if method == "subset" else " (win 21)"))
         rows.append((f"(a) sample 5, {label}", len(seeds), f"{v.mean():.3f}",
                      f"{np.sqrt(np.mean(e[:, 0] ** 2)):.4f} / {np.sqrt(np.mean(e[:, 1] ** 2)):.4f}",
