@@ -16,10 +16,15 @@ drifted raw, drifted registered. Reported:
   (b) the true map of stage drift plus a 3 px scan drift (not affine: 30 % quadratic), with
   the affine model;
   (c) on the default slip-band scene, the true drift composed with the undrifted series'
-  own registration (the material's mean motion, which no image registration can tell
-  apart from drift). Target: within 0.1 px.
+  own registration (the material's own motion, which no image registration can tell
+  apart from drift); (d) on the same scene, the true drift composed with the motion of the
+  largest rigidly moving region (the strip between slip bands covering most of the image,
+  from ``truth/fields.npz``), over the image and over that strip. Target: within 0.1 px.
 
-Run: ``.venv/bin/python benchmarks/drift_accuracy.py`` (about 3 minutes on 2 cores).
+In-script references: DeepFlow, DIS medium and DIS fine (``reference_trackers.py``) at the
+same points on the undrifted raw and the drifted registered runs (``--no-reference``: skip).
+
+Run: ``.venv/bin/python benchmarks/drift_accuracy.py`` (about 6 minutes on 2 cores).
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ from semlab.experiment import load
 from semlab.registration import Transform2D, read_drift_csv, register_frames
 from semlab.synth import _stage_matrix, drifted_positions, make_experiment
 from semlab.tracking import TrackingWarning, track_reverse
+
+from reference_trackers import REFERENCE_TRACKERS, reference_tracks, rms
 
 warnings.simplefilter("ignore", TrackingWarning)
 
@@ -107,10 +114,29 @@ def drift_recovery(seed, F, drift_kw):
             {c: truth[c][k] for c in cols}, shape)) @ ru.transforms[k])(g), axis=1).max())
             for k in range(F - 1)]
         out["methods"] = [str(m) for m in rd.method]
+        # (d) the same against the true stage drift composed with the motion of the largest
+        # rigidly moving region: the strip between slip bands covering most of the part of
+        # the last frame every frame sees (the mode of the true displacement field there)
+        fl = np.load(folder / "truth" / "fields.npz")
+        xx, yy = np.meshgrid(fl["x_px"], fl["y_px"])
+        h, w = shape
+        seen = (xx >= 35) & (xx <= w - 36) & (yy >= 35) & (yy <= h - 36)
+        key = np.round(np.column_stack([fl["ux_um"][seen], fl["uy_um"][seen]]) / 0.002).astype(int)
+        vals, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        u_px = vals[np.argmax(cnt)] * 0.002 / float(fl["pixel_size_um"])
+        strip = np.column_stack([xx[seen], yy[seen]])[inv.ravel() == np.argmax(cnt)]
+        out["strip_fraction"] = float(cnt.max() / cnt.sum())
+        out["rigid"], out["rigid_in"] = [], []
+        for k in range(F - 1):
+            true = Transform2D(_stage_matrix({c: truth[c][k] for c in cols}, shape)) @ \
+                Transform2D.from_params(*(-(1 - fl["f"][k]) * u_px))
+            out["rigid"].append(float(np.linalg.norm(rd.transforms[k](g) - true(g), axis=1).max()))
+            out["rigid_in"].append(float(np.linalg.norm(rd.transforms[k](strip) - true(strip),
+                                                        axis=1).max()))
     return out
 
 
-def tracking_case(seed, F, drift_kw, method="subset", reg_model="similarity"):
+def tracking_case(seed, F, drift_kw, method="subset", reg_model="similarity", with_reference=True):
     with tempfile.TemporaryDirectory() as tmp:
         f_u, t_u, _ = _series(tmp, "undrifted", seed, F)
         f_d, t_d, _ = _series(tmp, "drifted", seed, F, **drift_kw)
@@ -127,9 +153,40 @@ def tracking_case(seed, F, drift_kw, method="subset", reg_model="similarity"):
             rows[label] = (*_frame0(tr, true), time.perf_counter() - t0, tr.valid[:-1],
                            np.linalg.norm(tr.xy - true, axis=2)[:-1])
         except Exception as exc:            # TrackingError: every track lost
+            tr = None
             rows[label] = (0.0, np.nan, 0, time.perf_counter() - t0,
                            np.zeros((F - 1, len(true[0])), bool), np.full((F - 1, len(true[0])), np.nan))
+        if with_reference and label in ("undrifted, raw", "drifted, registered"):
+            # the dense references at the same points; the drifted frames resampled with the
+            # registration semlab tracked with
+            ref = reference_tracks(frames, true[-1], None if tr is None else tr.registration)
+            rows[label] += ({k: np.linalg.norm(v - true, axis=2)[:-1] for k, v in ref.items()},)
     return int(keep.sum()), rows
+
+
+def reference_table(refs):
+    """semlab's error against the dense references' at the same steps (ratios)."""
+    names = " | ".join(REFERENCE_TRACKERS)
+    print("\nIn-script reference trackers at the same points and steps (`reference_trackers.py`: "
+          "dense flow from the last frame to each frame, drifted frames resampled with semlab's "
+          "registration first). RMS error (px) on the steps semlab kept valid, frames 0..F-2, "
+          "and semlab / reference; then every point at frame 0 (the references flag nothing)\n")
+    print(f"| seed | run | valid steps | semlab | {names} | semlab / best reference | "
+          f"frame 0, all points: {names} |")
+    print("|---|---|---|---|" + "---|" * len(REFERENCE_TRACKERS) + "---|"
+          + "---|" * len(REFERENCE_TRACKERS))
+    for seed, rows in refs:
+        for label, r in rows.items():
+            if len(r) < 7:
+                continue
+            v, err, ref = r[4], r[5], r[6]
+            own = rms(err, v)
+            others = [rms(ref[k], v) for k in REFERENCE_TRACKERS]
+            best = np.nanmin(others) if np.isfinite(others).any() else np.nan
+            f0 = [rms(ref[k][0]) for k in REFERENCE_TRACKERS]
+            print(f"| {seed} | {label} | {int(v.sum())} | {own:.3f} | "
+                  + " | ".join(f"{x:.3f}" for x in others) + f" | {own / best:.2f} | "
+                  + " | ".join(f"{x:.3f}" for x in f0) + " |")
 
 
 def figure(path, F, drift_kw):
@@ -159,6 +216,8 @@ def main():
     ap.add_argument("--method", default="subset")
     ap.add_argument("--figure", help="write the README drift figure (seed 0) to this PNG and stop")
     ap.add_argument("--tracking-only", action="store_true", help="skip the drift-recovery table")
+    ap.add_argument("--no-reference", action="store_true",
+                    help="skip the in-script reference trackers (DeepFlow, DIS)")
     a = ap.parse_args()
     if a.figure:
         return figure(a.figure, a.frames, dict(drift_shift_px=a.shift, drift_rotation_deg=a.rot,
@@ -173,13 +232,20 @@ def main():
           "0..F-2 | RMS on the steps valid in this run and the undrifted raw one, frames 0..F-2 (px) "
           "| valid steps > 0.5 px off | s |")
     print("|---|---|---|---|---|---|---|---|---|")
+    refs = []
     for seed in seeds:
-        n, rows = tracking_case(seed, a.frames, drift_kw, a.method, a.model)
+        n, rows = tracking_case(seed, a.frames, drift_kw, a.method, a.model,
+                                not a.no_reference)
+        refs.append((seed, rows))
         base = rows["undrifted, raw"]
         for label, r in rows.items():
             rel = f" ({r[0] / base[0]:.2f}x)" if base[0] > 0 and label != "undrifted, raw" else ""
             d = f" ({r[1] - base[1]:+.3f})" if label != "undrifted, raw" and np.isfinite(r[1]) else ""
             both = r[4] & base[4]
+            if label != "undrifted, raw" and both[0].any():
+                # frame 0 on the tracks valid there in both runs (the sets above differ)
+                e1, e0 = (rms(x[0], both[0]) for x in (r[5], base[5]))
+                d += f"; on the {both[0].sum()} common: {e1:.3f} vs {e0:.3f} ({e1 - e0:+.3f})"
             common = "-"
             if label != "undrifted, raw" and both.any():
                 e1, e0 = (np.sqrt(np.mean(x[both] ** 2)) for x in (r[5], base[5]))
@@ -187,6 +253,8 @@ def main():
             per = np.round(r[4].mean(axis=1), 2).tolist()
             print(f"| {seed} | {n} | {label} | {r[0]:.3f}{rel} | {r[1]:.3f}{d} | {per} | {common} "
                   f"| {r[2]} | {r[3]:.1f} |")
+    if not a.no_reference:
+        reference_table(refs)
     if a.tracking_only:
         return
     print("\n| seed | case | largest error over the image (px), frames 0..F-2 | max |")
@@ -196,7 +264,11 @@ def main():
         for key, name in (("stage", "stage drift alone (no material motion), similarity, vs the true drift"),
                           ("scan", "stage + 3 px scan drift, affine, vs the true non-affine map"),
                           ("slip", "slip-band scene: drifted registration vs true drift @ undrifted "
-                                   f"registration; methods {r['methods']}")):
+                                   f"registration; methods {r['methods']}"),
+                          ("rigid", "slip-band scene: drifted registration vs true drift @ motion of "
+                                    f"the largest rigid strip ({r['strip_fraction']:.0%} of the "
+                                    "image), over the image"),
+                          ("rigid_in", "same, over that strip only")):
             print(f"| {seed} | {name} | {np.round(r[key], 3).tolist()} | {max(r[key]):.3f} |")
 
 

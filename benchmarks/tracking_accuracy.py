@@ -9,6 +9,10 @@
 (c) speed of LK and IC-GN subset tracking, points per second per frame step;
 (d) the synthetic series of semlab.synth (true material-point positions per frame).
 
+In-script references (``reference_trackers.py``): OpenCV DeepFlow, DIS medium and DIS fine
+at the same seeds in (a) and (d), flow from the last frame to each frame directly; in (d)
+the RMS error of semlab's valid steps is set against the references' at the same steps.
+
 Run: ``.venv/bin/python benchmarks/tracking_accuracy.py`` from the project root. Prints
 markdown tables. Data are looked up in ../shared/data next to the project root.
 """
@@ -23,6 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from semlab.tracking import TrackingWarning, shi_tomasi_seeds, track_reverse
+
+from reference_trackers import reference_tracks, rms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "dic_challenge"
@@ -61,6 +67,14 @@ def sample5(rows, speed):
                      f"{np.sqrt(np.mean(np.sum(e ** 2, 1))):.4f}",
                      f"mean bias ({e[:, 0].mean():+.4f}, {e[:, 1].mean():+.4f}) px"))
         speed.append((f"sample 5 512x512, {label}", len(seeds), 1, dt, len(seeds) / dt))
+    # in-script references at the same seeds (dense flow, no validity: every seed)
+    ref_tracks = reference_tracks([ref, cur], seeds)
+    for name, q in ref_tracks.items():
+        e = (seeds - q[0]) - true
+        rows.append((f"(a) sample 5, {name} (reference)", len(seeds), "-",
+                     f"{np.sqrt(np.mean(e[:, 0] ** 2)):.4f} / {np.sqrt(np.mean(e[:, 1] ** 2)):.4f}",
+                     f"{np.sqrt(np.mean(np.sum(e ** 2, 1))):.4f}",
+                     f"mean bias ({e[:, 0].mean():+.4f}, {e[:, 1].mean():+.4f}) px; all seeds"))
 
 
 def _rot(pts, c, deg):
@@ -161,6 +175,8 @@ def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
         true = true[:, inside]
         seeds = true[-1]
         st = shi_tomasi_seeds(frames[-1])
+        ref_err = {name: np.linalg.norm(q - true, axis=2)
+                   for name, q in reference_tracks(frames, seeds).items()}
         for method in ("lk", "subset"):
             t0 = time.perf_counter()
             tr = track_reverse(frames, seeds, method=method, progress=False)
@@ -176,13 +192,24 @@ def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
                          "RMS error of valid steps per frame "
                          f"{[round(float(np.sqrt(np.mean(err[k][tr.valid[k]] ** 2))), 3) if tr.valid[k].any() else None for k in range(F)]}; "
                          "RMS error of all tracks (valid or not) per frame "
-                         f"{[round(float(np.sqrt(np.nanmean(err[k] ** 2))), 3) for k in range(F)]}"))
+                         f"{[round(float(np.sqrt(np.nanmean(err[k] ** 2))), 3) for k in range(F)]}; "
+                         "on the valid steps of frames 0..F-2, semlab "
+                         f"{rms(err[:-1], tr.valid[:-1]):.3f} px vs "
+                         + ", ".join(f"{name} {rms(e[:-1], tr.valid[:-1]):.3f}"
+                                     for name, e in ref_err.items())
+                         + " (ratio to the best "
+                         f"{rms(err[:-1], tr.valid[:-1]) / min(rms(e[:-1], tr.valid[:-1]) for e in ref_err.values()):.2f})"))
             t0 = time.perf_counter()
             track_reverse(frames, st, method=method, progress=False)
             dt = time.perf_counter() - t0
             speed.append((f"synth seed {scene_seed} {w}x{h}, Shi-Tomasi seeds, {method}",
                           len(st), F - 1, dt,
                           len(st) * (F - 1) / dt))
+        for name, e in ref_err.items():
+            rows.append((f"(d) synth series seed {scene_seed}, {name} (reference)", len(seeds),
+                         "-", "-", f"{rms(e[0]):.3f}",
+                         "every point (no validity flag), last frame -> frame directly; RMS "
+                         f"per frame {[round(rms(e[k]), 3) for k in range(F)]}"))
 
 
 def main():
