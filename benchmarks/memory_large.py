@@ -16,12 +16,19 @@ Cases:
   256 px tiles) over a central ``--dense-roi`` square of the pair (the whole 12.6 Mpx map
   takes too long for a benchmark; a tile's memory does not depend on the image size).
 
+- ``--run``: a synthetic 3072×4096 experiment (±5° pair of a slip-banded surface, written
+  as 16-bit TIFFs by :func:`write_experiment`) through ``semlab run --only 04`` (the stereo
+  step, automatic matching in tiles, and the heightmap step, tiled, over ``--map-roi``; the
+  notebook 04 kernel included). The peak is that of the ``semlab`` process plus all its
+  children (notebook kernel), sampled every 0.2 s; the process alone is also reported.
+
 The images: band-limited random texture (Gaussian-filtered white noise, σ 1.5 px), view 1
 rendered with a smooth parallax field of ±4 px, the frames with a displacement growing to
 3 px, plus noise. Run::
 
     python benchmarks/memory_large.py                 # all four cases, ~5-10 min on 2 cores
     python benchmarks/memory_large.py --cases icgn_tiled --size 1536x2048
+    python benchmarks/memory_large.py --run --map-roi 1024      # semlab run, ~15 min
 """
 
 from __future__ import annotations
@@ -105,6 +112,133 @@ class PeakSampler:
         self.peak = max(self.peak, self._rss())
 
 
+def surface_um(shape, pixel_size_um):
+    """Height field (µm) on the view-0 grid: three slip-band ribbons with 0.1-0.3 µm steps
+    (tanh edges 0.1 µm wide) on a slow ±0.2 µm undulation."""
+    h, w = shape
+    y = np.arange(h, dtype=np.float32)[:, None] * pixel_size_um
+    x = np.arange(w, dtype=np.float32)[None, :] * pixel_size_um
+    z = 0.2 * np.sin(x / 25.0) * np.cos(y / 30.0)
+    n = x * np.float32(0.5) + y * np.float32(0.866)
+    for c, wid, a in ((30.0, 6.0, 0.3), (60.0, 4.0, -0.15), (85.0, 8.0, 0.2)):
+        z = z + a * 0.5 * (np.tanh((n - c + wid / 2) / 0.1) - np.tanh((n - c - wid / 2) / 0.1))
+    return z.astype(np.float32)
+
+
+def write_experiment(folder, size=(3072, 4096), pixel_size_um=0.03, tilts=(-5.0, 5.0)):
+    """A synthetic ±5° stereo experiment of ``size`` (H, W) pixels in ``folder``.
+
+    View ``k`` at tilt θ shows at pixel ``u`` the texture at
+    ``x = cx + (u - cx) / cos θ - z sin θ / (s cos θ)`` (first order in the height),
+    so the parallax is ``2 z sin 5° / s`` (±3 px here); 16-bit, Gaussian noise 1 % of the
+    texture's contrast.
+    """
+    import cv2
+    import tifffile
+
+    folder = Path(folder)
+    (folder / "end_state").mkdir(parents=True, exist_ok=True)
+    h, w = size
+    base = texture((h, w), 0)
+    z = surface_um((h, w), pixel_size_um)
+    cx = (w - 1) / 2.0
+    names = []
+    for k, t in enumerate(tilts):
+        th = np.deg2rad(t)
+        u = np.arange(w, dtype=np.float32)[None, :]
+        xs = cx + (u - cx) / np.cos(th) - z * np.float32(np.sin(th) / (pixel_size_um * np.cos(th)))
+        ys = np.ascontiguousarray(np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w)))
+        img = cv2.remap(base, xs.astype(np.float32), ys, cv2.INTER_CUBIC,
+                        borderMode=cv2.BORDER_REFLECT)
+        img = img + np.random.default_rng(5 + k).normal(0, 0.4, img.shape).astype(np.float32)
+        name = f"end_state/view_{k}.tif"
+        tifffile.imwrite(folder / name, np.clip(img * 200.0, 0, 65535).astype(np.uint16))
+        names.append(name)
+        del xs, img
+    (folder / "experiment.toml").write_text(
+        f'name = "memory_large {h}x{w}"\npixel_size_um = {pixel_size_um}\n\n[stereo]\n'
+        f'views = {names!r}\ntilt_deg = {list(tilts)!r}\n'.replace("'", '"'))
+    return folder
+
+
+def run_semlab(size, map_roi, keep=None):
+    """``semlab run --only 04`` on a synthetic experiment; the peak RSS of its processes."""
+    import shutil
+    import tempfile
+
+    import psutil
+
+    tmp = Path(tempfile.mkdtemp(prefix="semlab_memory_run_"))
+    try:
+        h, w = size
+        t0 = time.perf_counter()
+        exp = write_experiment(tmp / "exp", size)
+        t_write = time.perf_counter() - t0
+        c = int(map_roi)
+        x0, y0 = (w - c) // 2 // 16 * 16, (h - c) // 2 // 16 * 16
+        roi = [x0, y0, x0 + c, y0 + c]
+        semlab = Path(sys.executable).with_name("semlab")
+        cmd = [str(semlab), "run", str(exp), "--out", str(tmp / "out"), "--only", "04",
+               "--set", "n_boot=0", "--set", f"heightmap_roi={roi}"]
+        t0 = time.perf_counter()
+        proc = psutil.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        log = []
+        reader = threading.Thread(target=lambda: log.extend(proc.stdout), daemon=True)
+        reader.start()
+        peak_all = peak_own = 0
+        while proc.poll() is None:
+            try:
+                own = proc.memory_info().rss
+                total = own + sum(_rss(ch) for ch in proc.children(recursive=True))
+            except psutil.NoSuchProcess:
+                break
+            peak_own, peak_all = max(peak_own, own), max(peak_all, total)
+            time.sleep(0.2)
+        proc.wait()
+        reader.join(5)
+        seconds = time.perf_counter() - t0
+        if proc.returncode:
+            print("".join(log[-60:]), file=sys.stderr)
+            raise SystemExit(f"semlab run failed ({proc.returncode})")
+        import json as _json
+
+        import tifffile
+
+        out = tmp / "out"
+        z = tifffile.imread(out / "heightmap.tif")
+        cal = _json.loads((out / "calibration.json").read_text())
+        pts = np.loadtxt(out / "points3d.csv", delimiter=",", skiprows=1, usecols=0, ndmin=1)
+        # heights against the surface: the map is above the points' reference plane, so
+        # compare after removing the best plane (the reference is a fit)
+        zt = surface_um((h, w), 0.03)[roi[1]:roi[3], roi[0]:roi[2]]
+        ok = np.isfinite(z)
+        yy, xx = np.nonzero(ok)
+        A = np.column_stack([xx, yy, np.ones(len(xx))]).astype(float)
+        d = (z[ok] - zt[ok]).astype(float)
+        coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+        rmse_nm = float(np.sqrt(np.mean((d - A @ coef) ** 2)) * 1e3)
+        info = {"case": "semlab_run", "size": f"{h}x{w}, map {c}x{c} ROI",
+                "points": int(len(pts)), "map_valid": float(ok.mean()),
+                "map_rmse_nm": round(rmse_nm, 1), "write_s": round(t_write, 1),
+                "seconds": round(seconds, 1), "peak_rss_gb": round(peak_all / 1e9, 3),
+                "semlab_process_gb": round(peak_own / 1e9, 3),
+                "tiled": "auto_match_tiling" in cal,
+                "ru_maxrss_gb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+                                      * 1024 / 1e9, 3)}
+        if keep:
+            shutil.copytree(out, keep, dirs_exist_ok=True)
+        return info
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _rss(p):
+    try:
+        return p.memory_info().rss
+    except Exception:                    # a process that just exited
+        return 0
+
+
 def run_case(case, size, spacing, n_frames, dense_roi=512):
     """Run one case in this process; returns a dict of numbers."""
     from semlab import parallel
@@ -183,8 +317,24 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=3, help="frames of the tracking cases")
     p.add_argument("--dense-roi", type=int, default=512, help="side of the dense_tiled ROI, px")
     p.add_argument("--one", default="", help=argparse.SUPPRESS)   # run one case here
+    p.add_argument("--run", action="store_true",
+                   help="semlab run (stereo + heightmap) on a synthetic experiment instead")
+    p.add_argument("--map-roi", type=int, default=1024,
+                   help="side of the central height-map ROI of --run, px (default 1024)")
+    p.add_argument("--keep", default="", help="--run: copy the results to this folder")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.lower().split("x"))
+    if args.run:
+        r = run_semlab((h, w), args.map_roi, args.keep or None)
+        print(r)
+        print(f"\nmemory_large.py --run, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores\n")
+        print("| run | size | stereo points | map valid | map RMSE vs truth (nm, plane removed) "
+              "| time (s) | peak RSS, semlab + children (GB) | semlab process (GB) |")
+        print("|---|---|---|---|---|---|---|---|")
+        print(f"| semlab run --only 04 | {r['size']} | {r['points']} | {r['map_valid']:.1%} | "
+              f"{r['map_rmse_nm']} | {r['seconds']} | {r['peak_rss_gb']} | "
+              f"{r['semlab_process_gb']} |")
+        return 0
     if args.one:
         print("RESULT " + json.dumps(run_case(args.one, (h, w), args.spacing, args.frames,
                                               args.dense_roi)))

@@ -133,7 +133,10 @@ class AnalysisConfig:
         return dataclasses.replace(self, **changes)
 
     def as_dict(self):
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if d["heightmap_roi"] is not None:       # JSON / notebook parameters: a list
+            d["heightmap_roi"] = list(d["heightmap_roi"])
+        return d
 
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
