@@ -172,6 +172,9 @@ def experiment_fingerprint(exp):
     if exp.stereo is not None:
         paths += list(exp.stereo.view_paths)
         paths += [p for p in (exp.stereo.correspondences_path, exp.stereo.lines_path) if p]
+        if isinstance(exp.stereo.reference_region, Path):
+            paths.append(exp.stereo.reference_region)
+    paths += [p for p in exp.metrology_regions.values() if isinstance(p, Path)]
     if exp.series is not None:
         paths += list(exp.series.frame_paths)
     memo_path = _user_cache_dir() / "file_hashes.json"
@@ -498,7 +501,8 @@ class Analysis:
             return hm, bands
 
         def write(result, folder):
-            return list(heightmap.write_heightmap_results(result[0], folder,
+            regions = metrology.regions_on_map(exp.metrology_regions, result[0].roi)
+            return list(heightmap.write_heightmap_results(result[0], folder, regions=regions,
                                                           bands=result[1]).values())
 
         return self._cached("heightmap", self.config.for_step("heightmap"), compute, write)

@@ -17,6 +17,9 @@ An experiment folder looks like::
       frames = ["series/f00.tif", ...]   # or a glob; chronological, earliest first
       cycles = [...]                # optional, one per frame
       minutes = [...]               # optional, one per frame
+      [metrology]
+      regions = { band_1 = [x0, y0, x1, y1], grain = [[x, y], ...], pit = "masks/pit.png" }
+                                    # optional named regions of view 0 (as reference_region)
 
 Paths are relative to the TOML file. ``[stereo]`` and ``[series]`` are each optional but not
 both absent. Values in the TOML override the SEM metadata of the images; a disagreement is
@@ -46,7 +49,8 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 TOML_NAME = "experiment.toml"
-TOP_KEYS = {"name", "description", "pixel_size_um", "stereo", "series"}
+TOP_KEYS = {"name", "description", "pixel_size_um", "stereo", "series", "metrology"}
+METROLOGY_KEYS = {"regions"}
 STEREO_KEYS = {"views", "tilt_deg", "camera", "correspondences", "lines", "reference_region",
                "reference_points"}
 SERIES_KEYS = {"frames", "cycles", "minutes"}
@@ -136,6 +140,10 @@ class Experiment:
     series : SeriesSpec or None
     notes : list of str
         Disagreements between the TOML and the image metadata, and other remarks.
+    metrology_regions : dict
+        ``[metrology] regions``: name → rectangle ``[x0, y0, x1, y1]`` (inclusive, like
+        ``reference_region``), polygon ``[[x, y], ...]`` or mask image Path, view-0 pixels;
+        each gets its ISO 25178 row in ``surface_parameters.csv``.
     """
 
     name: str
@@ -147,6 +155,7 @@ class Experiment:
     series: SeriesSpec | None = None
     description: str = ""
     notes: list = field(default_factory=list)
+    metrology_regions: dict = field(default_factory=dict)
     _cache: dict = field(default_factory=dict, repr=False)
 
     # -- images ---------------------------------------------------------------------------
@@ -281,6 +290,64 @@ def _number_list(value, key, toml_path, n=None):
     return arr
 
 
+def _region_value(region, key, root, toml_path):
+    """A region of view 0 from the TOML: a rectangle ``[x0, y0, x1, y1]`` or polygon
+    ``[[x, y], ...]`` (list), or a mask image (resolved Path)."""
+    if isinstance(region, str):
+        return _resolve(root, region, key, toml_path)
+    try:
+        arr = np.asarray(region, float)
+    except (TypeError, ValueError):
+        arr = np.zeros((0,))
+    rect = arr.shape == (4,) and arr[2] > arr[0] and arr[3] > arr[1]
+    poly = arr.ndim == 2 and arr.shape[1] == 2 and arr.shape[0] >= 3
+    if not (rect or poly) or not np.all(np.isfinite(arr)):
+        raise ExperimentError(
+            f"{toml_path}: {key} = {region!r} is neither a rectangle [x0, y0, x1, y1] (x1 > "
+            "x0, y1 > y0) nor a polygon [[x, y], ...] of 3+ vertices in view-0 pixels, nor "
+            "a mask image path")
+    return arr.tolist()
+
+
+def _metrology_regions(cfg, root, toml_path, shape):
+    """``[metrology] regions``: named regions of view 0 for the map's ISO 25178 parameters."""
+    if "metrology" not in cfg:
+        return {}
+    me = _table(cfg, "metrology", METROLOGY_KEYS, toml_path)
+    regions = me.get("regions", {})
+    if not isinstance(regions, dict):
+        raise ExperimentError(f"{toml_path}: [metrology] regions must be a table of named "
+                              "regions, e.g. regions = { band_1 = [x0, y0, x1, y1] }, got "
+                              f"{regions!r}")
+    if regions and shape is None:
+        raise ExperimentError(f"{toml_path}: [metrology] regions are regions of the height "
+                              "map (view-0 pixels): they need a [stereo] table")
+    h, w = shape if shape is not None else (0, 0)
+    out = {}
+    for name, value in regions.items():
+        key = f"[metrology] regions.{name}"
+        if name.strip().lower() == "map":
+            raise ExperimentError(f"{toml_path}: {key}: the name 'map' is reserved for the "
+                                  "whole map in surface_parameters.csv; rename the region")
+        reg = _region_value(value, key, root, toml_path)
+        if isinstance(reg, Path):
+            m = read_image(reg).data
+            if m.shape[:2] != (h, w):
+                raise ExperimentError(f"{toml_path}: {key}: mask {reg.name} is "
+                                      f"{m.shape[1]}×{m.shape[0]} px, the views "
+                                      f"{w}×{h} px; draw the mask on view 0 at its size")
+            if not np.any(m):
+                raise ExperimentError(f"{toml_path}: {key}: mask {reg.name} is empty (no "
+                                      "non-zero pixel)")
+        else:
+            xy = np.asarray(reg, float).reshape(-1, 2)
+            if np.any(xy < -0.5) or np.any(xy[:, 0] > w - 0.5) or np.any(xy[:, 1] > h - 0.5):
+                raise ExperimentError(f"{toml_path}: {key} = {reg} reaches outside the "
+                                      f"{w}×{h} px views (view-0 pixels, x right, y down)")
+        out[str(name)] = reg
+    return out
+
+
 def _reference_region(st, root, toml_path, shape):
     """``[stereo] reference_region`` and ``reference_points``, checked (view-0 pixels)."""
     region, points = st.get("reference_region"), st.get("reference_points")
@@ -288,21 +355,8 @@ def _reference_region(st, root, toml_path, shape):
     if region is not None and points is not None:
         raise ExperimentError(f"{toml_path}: give {key} or [stereo] reference_points, not both")
     h, w = shape
-    if isinstance(region, str):
-        region = _resolve(root, region, key, toml_path)
-    elif region is not None:
-        try:
-            arr = np.asarray(region, float)
-        except (TypeError, ValueError):
-            arr = np.zeros((0,))
-        rect = arr.shape == (4,) and arr[2] > arr[0] and arr[3] > arr[1]
-        poly = arr.ndim == 2 and arr.shape[1] == 2 and arr.shape[0] >= 3
-        if not (rect or poly) or not np.all(np.isfinite(arr)):
-            raise ExperimentError(
-                f"{toml_path}: {key} = {region!r} is neither a rectangle [x0, y0, x1, y1] (x1 > "
-                "x0, y1 > y0) nor a polygon [[x, y], ...] of 3+ vertices in view-0 pixels, nor "
-                "a mask image path")
-        region = arr.tolist()
+    if region is not None:
+        region = _region_value(region, key, root, toml_path)
     if points is not None:
         try:
             arr = np.asarray(points, float)
@@ -609,7 +663,9 @@ def load(path) -> Experiment:
 
     exp = Experiment(name=str(cfg.get("name", root.name)), toml_path=toml_path, root=root,
                      pixel_size_um=pixel_size_um, pixel_size_source=source, stereo=stereo,
-                     series=series, description=str(cfg.get("description", "")), notes=notes)
+                     series=series, description=str(cfg.get("description", "")), notes=notes,
+                     metrology_regions=_metrology_regions(
+                         cfg, root, toml_path, None if stereo is None else stereo.shape))
     for n in notes:
         warnings.warn(n, SemlabWarning, stacklevel=2)
     # Parse the annotation files now so that a bad CSV or JSON fails at load time.

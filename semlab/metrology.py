@@ -30,6 +30,7 @@ __all__ = [
     "SURFACE_PARAMETERS",
     "BANDS_COLUMNS",
     "surface_parameters",
+    "regions_on_map",
     "write_surface_parameters_csv",
     "Band",
     "bands_from_clicks",
@@ -90,6 +91,53 @@ def _region_mask(region, shape, name):
     m = np.zeros(shape, bool)
     m[r[1]:r[3], r[0]:r[2]] = True
     return m
+
+
+def regions_on_map(regions, roi):
+    """Named regions of view 0 as bool masks of a map over ``roi``.
+
+    Parameters
+    ----------
+    regions : dict name -> region
+        As ``[metrology] regions`` of an experiment (:attr:`Experiment.metrology_regions`):
+        a rectangle ``[x0, y0, x1, y1]`` (inclusive), a polygon ``[[x, y], ...]`` or a mask
+        image (path or ``(H, W)`` array, non-zero inside), view-0 pixels; the semantics of
+        :func:`semlab.surface.region_mask` (the ``[stereo] reference_region`` parser).
+    roi : (x0, y0, x1, y1)
+        Half-open window of view-0 pixels the map covers (``HeightMap.roi``).
+
+    Returns
+    -------
+    dict name -> (y1 - y0, x1 - x0) bool array
+        Pixel ``[i, j]`` is view-0 pixel ``(x0 + j, y0 + i)``; a region outside the map is
+        all False (its row in ``surface_parameters.csv`` is then NaN).
+    """
+    from pathlib import Path
+
+    from .io import read_image
+    from .surface import region_mask
+
+    x0, y0, x1, y1 = (int(v) for v in roi)
+    out = {}
+    for name, reg in (regions or {}).items():
+        m = np.zeros((y1 - y0, x1 - x0), bool)
+        if isinstance(reg, (str, Path)) or (isinstance(reg, np.ndarray) and reg.ndim == 2
+                                            and reg.shape[1] != 2):
+            a = read_image(reg).data if isinstance(reg, (str, Path)) else np.asarray(reg)
+            m[:] = a[y0:y1, x0:x1] != 0
+        else:
+            # only the pixels of the region's bounding box are tested
+            xy = np.asarray(reg, float).reshape(-1, 2)
+            bx0, by0 = max(x0, int(np.floor(xy[:, 0].min()))), max(y0, int(np.floor(xy[:, 1].min())))
+            bx1 = min(x1, int(np.ceil(xy[:, 0].max())) + 1)
+            by1 = min(y1, int(np.ceil(xy[:, 1].max())) + 1)
+            if bx1 > bx0 and by1 > by0:
+                gx, gy = np.meshgrid(np.arange(bx0, bx1, dtype=float),
+                                     np.arange(by0, by1, dtype=float))
+                inside = region_mask(reg, np.column_stack([gx.ravel(), gy.ravel()]))
+                m[by0 - y0:by1 - y0, bx0 - x0:bx1 - x0] = inside.reshape(gx.shape)
+        out[str(name)] = m
+    return out
 
 
 def surface_parameters(z_um, pixel_size_um, regions=None, min_pixels=16):

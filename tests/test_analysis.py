@@ -180,3 +180,21 @@ def test_heightmap_roi_maps_only_that_window(computed, tmp_path):
                               progress=False)
     with pytest.raises(analysis.StepFailed, match="outside the views"):
         outside.heightmap()
+
+
+def test_named_metrology_regions_get_their_row(small_experiment, tmp_path):
+    import csv
+
+    toml = small_experiment / "experiment.toml"
+    toml.write_text(toml.read_text() + "\n[metrology]\nregions = { left = [0, 0, 63, 95], "
+                    "corner = [[0, 0], [40, 0], [0, 40]] }\n")
+    an = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
+    hm, _ = an.heightmap()
+    with open(tmp_path / "out" / "surface_parameters.csv", newline="") as f:
+        rows = {r["region"]: r for r in csv.DictReader(f)}
+    assert list(rows) == ["map", "left", "corner"]
+    left = np.isfinite(hm.z_um[:, :64])
+    assert int(rows["left"]["n_pixels"]) == int(left.sum()) > 0
+    z = hm.z_um[:, :64][left]
+    assert abs(float(rows["left"]["Sa_um"]) - np.mean(np.abs(z - z.mean()))) < 0.3 * float(
+        rows["left"]["Sa_um"]) + 1e-4

@@ -252,3 +252,46 @@ def test_reference_region_and_points_keys(small_experiment):
         load_with("reference_points = [[1, 1], [900, 5], [10, 80]]")
     with pytest.raises(ExperimentError, match="not both"):
         load_with("reference_points = [[1, 1], [90, 5], [10, 80]]\nreference_region = [1, 2, 3, 4]")
+
+
+def test_metrology_regions_key(small_experiment):
+    from pathlib import Path
+
+    toml = small_experiment / "experiment.toml"
+    base = toml.read_text()
+
+    def load_with(text):
+        toml.write_text(base + "\n[metrology]\n" + text + "\n")
+        return load(toml)
+
+    assert load(toml).metrology_regions == {}
+    mask = np.zeros((96, 128), np.uint8)
+    mask[10:30, 40:90] = 255
+    write_tiff(small_experiment / "pit.tif", mask)
+    exp = load_with('regions = { band = [1, 2, 30, 40], tri = [[0, 0], [50, 0], [0, 40]], '
+                    'pit = "pit.tif" }')
+    r = exp.metrology_regions
+    assert r["band"] == [1, 2, 30, 40] and r["tri"] == [[0, 0], [50, 0], [0, 40]]
+    assert isinstance(r["pit"], Path) and r["pit"].name == "pit.tif"
+    assert list(r) == ["band", "tri", "pit"]
+    # the same table written as [metrology.regions]
+    toml.write_text(base + "\n[metrology.regions]\nband = [1, 2, 30, 40]\n")
+    assert load(toml).metrology_regions == {"band": [1, 2, 30, 40]}
+    with pytest.raises(ExperimentError, match=r"regions\.band.*rectangle"):
+        load_with("regions = { band = [30, 2, 1, 40] }")
+    with pytest.raises(ExperimentError, match=r"regions\.band.*outside the 128×96"):
+        load_with("regions = { band = [1, 2, 300, 40] }")
+    with pytest.raises(ExperimentError, match="'map' is reserved"):
+        load_with("regions = { map = [1, 2, 30, 40] }")
+    with pytest.raises(ExperimentError, match="must be a table of named regions"):
+        load_with("regions = [1, 2, 30, 40]")
+    with pytest.raises(ExperimentError, match="did you mean 'regions'"):
+        load_with("region = { a = [1, 2, 30, 40] }")
+    with pytest.raises(ExperimentError, match=r"regions\.pit.*not found"):
+        load_with('regions = { pit = "nomask.png" }')
+    write_tiff(small_experiment / "small.tif", mask[:50])
+    with pytest.raises(ExperimentError, match="draw the mask on view 0 at its size"):
+        load_with('regions = { pit = "small.tif" }')
+    write_tiff(small_experiment / "empty.tif", 0 * mask)
+    with pytest.raises(ExperimentError, match="is empty"):
+        load_with('regions = { pit = "empty.tif" }')

@@ -206,3 +206,27 @@ def test_profile_tool_clicks_and_set_points():
     prof = tool.set_points((0, 75), (199, 75))
     assert prof["distance_um"][-1] == pytest.approx(199 * S)
     plt.close("all")
+
+
+def test_regions_on_map_follow_the_map_window(tmp_path):
+    from semlab.io import write_tiff
+
+    roi = (10, 20, 74, 68)                    # the map covers view-0 x 10..73, y 20..67
+    mask = np.zeros((96, 128), np.uint8)
+    mask[30:40, 50:60] = 1
+    write_tiff(tmp_path / "m.tif", mask)
+    regions = {"box": [12, 22, 21, 31], "tri": [[10, 20], [40, 20], [10, 50]],
+               "pit": tmp_path / "m.tif", "away": [100, 80, 120, 90]}
+    m = mt.regions_on_map(regions, roi)
+    assert all(v.shape == (48, 64) and v.dtype == bool for v in m.values())
+    # the rectangle is inclusive (as [stereo] reference_region): 10 × 10 view-0 pixels
+    assert m["box"].sum() == 100 and m["box"][2:12, 2:12].all()
+    assert m["pit"].sum() == 100 and m["pit"][10:20, 40:50].all()
+    assert m["tri"][1, 1] and m["tri"][5, 5] and not m["tri"][29, 29]
+    assert 400 < m["tri"].sum() < 500              # half of a 30 × 30 square
+    assert not m["away"].any()
+    z = np.where(np.arange(64)[None, :] < 32, 0.1, -0.1) * np.ones((48, 1))
+    rows = mt.surface_parameters(z, 0.03, regions=m)
+    by = {r["region"]: r for r in rows}
+    assert by["box"]["n_pixels"] == 100 and by["box"]["Sa"] == 0.0
+    assert np.isnan(by["away"]["Sa"]) and by["away"]["n_pixels"] == 0

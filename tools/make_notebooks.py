@@ -459,7 +459,8 @@ if hm is not None:
     md("## Areal parameters (ISO 25178-2, `surfalize`) and profiles across the bands"),
     code('''
 if hm is not None:
-    for r in metrology.surface_parameters(hm.z_um, exp.pixel_size_um):
+    regions = metrology.regions_on_map(exp.metrology_regions, hm.roi)  # [metrology] regions
+    for r in metrology.surface_parameters(hm.z_um, exp.pixel_size_um, regions=regions):
         print(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()))
     profs = [metrology.band_profile(hm.z_um, hm.sigma_um, exp.pixel_size_um, b) for b in bands]
     plots.show_static(plots.show_bands(hm.z_um, bands, pixel_size_um=exp.pixel_size_um).figure,
