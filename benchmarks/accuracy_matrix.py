@@ -2,8 +2,11 @@
 
 Run:  python benchmarks/accuracy_matrix.py            # full matrix (~20-30 min on 2 cores)
       python benchmarks/accuracy_matrix.py --quick    # 3 small cells (< 3 min)
+      python benchmarks/accuracy_matrix.py --sets clicks \
+          --cells polished/realistic/-5/5,real:fei/realistic/0/8   # some cells, clicks only
 
-Writes ``benchmarks/results/accuracy_matrix.md`` (``--quick``: ``accuracy_matrix_quick.md``;
+Writes ``benchmarks/results/accuracy_matrix.md`` (``--quick``: ``accuracy_matrix_quick.md``; with
+``--cells`` or ``--sets``: ``accuracy_matrix_subset.md``;
 ``--out`` to change) and prints it.
 
 Cells
@@ -60,6 +63,7 @@ import argparse
 import dataclasses
 import datetime
 import inspect
+import sys
 import tempfile
 import time
 import warnings
@@ -273,13 +277,17 @@ def score(exp, pts, tilts, z_err_um=None):
     return row
 
 
-def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks):
+def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None):
+    """Rows of one cell; ``sets``: only the semlab point sets whose name starts with one of
+    these (e.g. ``("clicks",)``), default all."""
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
     v0, v1 = exp.views()[:2]
     flows, _ = dense_flows(v0, v1)
     clean = clean_view0(exp, regime, seed, size)
     rows = []
-    for set_name, method, match_kw in semlab_variants():
+    variants = [v for v in semlab_variants()
+                if sets is None or any(v[0].startswith(k) for k in sets)]
+    for set_name, method, match_kw in variants:
         try:
             sh = semlab_heights(exp, method, **match_kw)
         except Exception as exc:  # a failing method is a result, not a crash of the table
@@ -344,11 +352,15 @@ def summary(cells):
 
         def rm(key):
             r = by.get(key)
+            if r is None and not any(k[0] == key[0] for k in by):
+                return "–"      # that point set was not run (--sets)
             return "failed" if r is None or "fail" in r else _f(r["rmse"], ".1f")
 
         a = by.get(("auto", "semlab auto"), {})
         auto = (f"{rm(('auto', 'semlab auto'))} ({a['n']}, {a['cov']:.0%})"
                 if a and "fail" not in a else "none found (refs on the 8-px grid)")
+        if not any(k[0] == "auto" for k in by):
+            auto = "not run"
         crb = _f(by.get(("auto", "DeepFlow"), {}).get("crb", np.nan), ".1f")
         aa = by.get(("auto adaptive", "semlab auto adaptive"), {})
         adaptive = (f"{rm(('auto adaptive', 'semlab auto adaptive'))} ({aa['n']})"
@@ -363,6 +375,15 @@ def summary(cells):
     return "\n".join(lines)
 
 
+def _parse_cell(text):
+    """(regime, noise, (t0, t1)) from ``REGIME/NOISE/T0/T1``."""
+    parts = text.strip().split("/")
+    if len(parts) != 4 or parts[0] not in REGIMES or parts[1] not in NOISES:
+        raise SystemExit(f"--cells: {text!r} is not REGIME/NOISE/T0/T1 with REGIME in "
+                         f"{REGIMES} and NOISE in {NOISES}")
+    return parts[0], parts[1], (float(parts[2]), float(parts[3]))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -370,27 +391,43 @@ def main(argv=None):
                     help="3 cells (speckle, polished, real:fei; realistic noise; ±5°) at 192×256")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None,
-                    help=f"markdown file (default {RESULTS.name}, or accuracy_matrix_quick.md)")
+                    help=f"markdown file (default {RESULTS.name}, or accuracy_matrix_quick.md; "
+                    "with --cells or --sets: accuracy_matrix_subset.md)")
+    ap.add_argument("--cells", default=None,
+                    help="only these cells of the full matrix, comma-separated "
+                    "REGIME/NOISE/T0/T1, e.g. polished/realistic/-5/5,real:fei/realistic/0/8")
+    ap.add_argument("--sets", default=None,
+                    help="only these semlab point sets (and the references at their points), "
+                    "comma-separated prefixes: clicks, auto")
     args = ap.parse_args(argv)
+    subset = args.cells is not None or args.sets is not None
     if args.out is None:
-        args.out = RESULTS.with_name("accuracy_matrix_quick.md") if args.quick else RESULTS
+        args.out = RESULTS.with_name("accuracy_matrix_quick.md") if args.quick else (
+            RESULTS.with_name("accuracy_matrix_subset.md") if subset else RESULTS)
+    sets = None if args.sets is None else tuple(args.sets.split(","))
     if args.quick:
         grid = [(r, "realistic", PAIRS[0]) for r in ("speckle", "polished", "real:fei")]
         size, n_clicks = (192, 256), 20
     else:
         grid = [(r, n, t) for r in REGIMES for n in NOISES for t in PAIRS]
         size, n_clicks = (384, 512), 50
+    if args.cells is not None:
+        grid = [_parse_cell(c) for c in args.cells.split(",")]
     t0 = time.perf_counter()
     cells = []
     with tempfile.TemporaryDirectory() as tmp:
         for regime, noise, tilts in grid:
             tc = time.perf_counter()
             cells.append(((regime, noise, tilts),
-                          run_cell(tmp, regime, noise, tilts, args.seed, size, n_clicks)))
+                          run_cell(tmp, regime, noise, tilts, args.seed, size, n_clicks,
+                                   sets)))
             print(f"{regime} {noise} {tilts}: {time.perf_counter() - tc:.0f} s", flush=True)
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    text = (f"# Accuracy matrix ({'quick' if args.quick else 'full'})\n\n"
-            f"`python benchmarks/accuracy_matrix.py{' --quick' if args.quick else ''}` on {when}, "
+    cmd = " ".join(["python benchmarks/accuracy_matrix.py"] + (argv if argv is not None
+                                                                  else sys.argv[1:]))
+    kind = "quick" if args.quick else ("subset" if subset else "full")
+    text = (f"# Accuracy matrix ({kind})\n\n"
+            f"`{cmd}` on {when}, "
             f"{size[0]}×{size[1]} px, 0.03 µm/px, seed {args.seed}, "
             f"{time.perf_counter() - t0:.0f} s. Heights after removing the plane of the error; "
             "all methods at the same points (see the script's docstring).\n\n"

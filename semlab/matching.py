@@ -46,6 +46,8 @@ from .noise import image_noise_sigma
 from .registration import match_features
 from .subset import icgn_refine, prefilter_image, zncc_match
 
+SQRT2 = float(np.sqrt(2.0))
+
 __all__ = ["MatchResult", "AutoMatchParams", "refine_correspondences", "auto_match",
            "merge_matches", "fit_affine"]
 
@@ -55,7 +57,7 @@ __all__ = ["MatchResult", "AutoMatchParams", "refine_correspondences", "auto_mat
 # --------------------------------------------------------------------------- refine clicks
 def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                            warp="affine", min_zncc=0.8, *, smooth_sigma_px=None,
-                           band_aware=True, band_half_width_px=3, kappa=1.0,
+                           band_aware=True, band_half_width_px=3, kappa=SQRT2,
                            target_sigma_px=0.05, min_half_window=7, max_half_window=28,
                            progress=False):
     """Refine hand-clicked correspondences to sub-pixel accuracy.
@@ -100,7 +102,15 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         square subset and biases it, while a subset along the band sees a nearly constant
         parallax.
     band_half_width_px, kappa : float
-        See ``band_aware``.
+        See ``band_aware``. ``kappa = √2`` (default) keeps the estimate of smaller estimated
+        mean-square error: the square's squared bias estimated without bias from the
+        disagreement ``d`` as ``d² − σ_d²`` with ``σ_d² ≈ σ_band² + σ_square²``, its MSE
+        ``d² − σ_band²`` exceeds the band's ``σ_band²`` where ``|d| > √2 σ_band``. With
+        ``kappa = 1`` noise alone picked the noisier band subset at about a third of the
+        points. On the clicks of 15 realistic-noise accuracy-matrix runs (polished,
+        real:fei, real:quartz, seeds 0-2) √2 lowered the height RMSE in 11 (geometric mean
+        −2 %, from 0.758× to 0.742× ECC 15px's) and on 12 low-noise runs raised it by 3 %
+        (at most 14 %; 0.726× to 0.748× ECC's).
     target_sigma_px : float or None
         Size each point's square subset by its information: the smallest from
         ``min_half_window`` up to ``max_half_window`` whose predicted σ reaches this target

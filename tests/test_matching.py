@@ -151,7 +151,7 @@ def test_band_subsets_grow_with_the_square_on_noisy_views():
     """On noisy views the squares grow (29×29). Band subsets of the smallest square's length
     beside them are the noisier estimate, chosen by noise alone: heights 1.84× the RMS
     error without band subsets on a smooth surface; as long as each point's square is wide
-    they cost 1.39×."""
+    they cost 1.39×, and 1.24× with the minimum-MSE choice (kappa = √2)."""
     num = den = 0.0
     for seed in (0, 1, 2):
         sc = Scene(seed=seed, edge_um=1.0)          # smooth ribbons: no edge bias to fix
@@ -165,7 +165,7 @@ def test_band_subsets_grow_with_the_square_on_noisy_views():
         assert np.median(bd.subset_px[bd.valid]) > 15      # the squares grew
         num += np.nanmean((heights_from(bd.pts, sc.c[0]) - zt) ** 2)
         den += np.nanmean((heights_from(sq.pts, sc.c[0]) - zt) ** 2)
-    assert np.sqrt(num / den) < 1.65
+    assert np.sqrt(num / den) < 1.32
 
 
 def test_ref_view_one_and_square_only(stereo):
