@@ -77,15 +77,19 @@ def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, r
 
 
 def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length, half_width,
-                     smooth_sigma_px, ref_coef, cur_coef, step_deg=15.0):
+                     smooth_sigma_px, ref_coef, cur_coef, step_deg=15.0,
+                     return_residual_ratio=False):
     """IC-GN with thin rectangular subsets along the band direction of each point.
 
     ``grad`` is one initial warp (6,) for all points or one per point (n, 6);
-    ``half_length`` one half length (pixels) for all points or one per point (n,)."""
+    ``half_length`` one half length (pixels) for all points or one per point (n,). Returns
+    positions (n, 2), noise σ of x (n,), ZNCC (n,) and with ``return_residual_ratio``
+    the residual ratios (n,)."""
     n = len(pts_ref)
     pts = np.full((n, 2), np.nan)
     sig = np.full(n, np.nan)
     zn = np.full(n, -1.0)
+    rr = np.full(n, np.nan)
     bins = np.round(np.asarray(angles_deg) / step_deg).astype(int) % int(round(180 / step_deg))
     lengths = np.broadcast_to(np.asarray(half_length, int), (n,))
     for b, hl in sorted(set(zip(bins.tolist(), lengths.tolist()))):
@@ -101,6 +105,9 @@ def _oriented_refine(ref_img, img, pts_ref, guess, grad, angles_deg, half_length
         pts[sel] = r.pts
         sig[sel] = r.sigma_px[:, 0]
         zn[sel] = r.zncc
+        rr[sel] = r.residual_ratio
+    if return_residual_ratio:
+        return pts, sig, zn, rr
     return pts, sig, zn
 
 

@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 from .adaptive import _grid_icgn
 from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
+from .match_sigma import aposteriori_sigma, model_error_from_fit
 from .match_band import _band_orientation, _coarse_parallax, _combine, _oriented_refine
 from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
                             _parallax_gradients)
@@ -476,6 +477,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     zn = np.ones((n, v))
     zn[:, [j for j in range(v) if j != ref]] = -1.0
     sig_x = np.zeros((n, v))
+    sig_ap = np.zeros((n, v))     # sig_x with the a posteriori variance factor
     valid = np.ones(n, bool)
     reason = np.full(n, "", dtype=object)
     side = np.zeros(n, int)
@@ -580,22 +582,25 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
                              max_iter=max_iter, tol_px=tol_px)
         side[work] = np.maximum(side[work], np.where(r.converged, 2 * hw_j + 1, 0))
         ok_j = r.converged & (r.zncc >= min_zncc)
-        pts_j, sig_j = r.pts, r.sigma_px[:, 0]
+        pts_j, sig_j, rr_j = r.pts, r.sigma_px[:, 0], r.residual_ratio
         if band_aware and ok_j.sum() >= 6:
             par = np.where(ok_j, (r.pts - _apply_affine(M, gw)) @ e, np.nan)
             ang, _, _ = _band_orientation(gw, gw, par, 2.0 * half_window)
             sel = np.flatnonzero(ok_j)
             warp_sel = np.where(np.isfinite(r.warp[sel]), r.warp[sel], init_w[sel])
-            o_pts, o_sig, o_zn = _oriented_refine(
+            o_pts, o_sig, o_zn, o_rr = _oriented_refine(
                 ims[ref], ims[j], gw[sel], r.pts[sel], warp_sel, ang[sel], 2 * half_window,
-                band_half_width_px, smooth_sigma_px, ref_coef, cur_coef)
-            c_pts, c_sig, _ = _combine(r.pts[sel], sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
-                                       kappa)
-            pts_j, sig_j = pts_j.copy(), sig_j.copy()
+                band_half_width_px, smooth_sigma_px, ref_coef, cur_coef,
+                return_residual_ratio=True)
+            c_pts, c_sig, use = _combine(r.pts[sel], sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
+                                         kappa)
+            pts_j, sig_j, rr_j = pts_j.copy(), sig_j.copy(), rr_j.copy()
             pts_j[sel], sig_j[sel] = c_pts, c_sig
+            rr_j[sel] = np.where(use, o_rr, rr_j[sel])
         out[work, j] = pts_j
         zn[work, j] = r.zncc
         sig_x[work, j] = sig_j
+        sig_ap[work, j] = aposteriori_sigma(sig_j, rr_j)
         for k in np.flatnonzero(~ok_j):
             i = work[k]
             if not r.converged[k]:
@@ -628,14 +633,21 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
                 valid[idx[out_l]] = False
     others = [j for j in range(v) if j != ref]
     sigma = np.sqrt(np.mean(sig_x[:, others] ** 2, axis=1))
-    if max_roughness_px is not None and valid.sum() >= 12:
+    model_x = np.zeros((n, v))
+    if valid.sum() >= 12:
         idx = np.flatnonzero(valid)
-        thr = max(max_roughness_px, 2.0 * float(np.median(sigma[idx])))
+        thr = max(max_roughness_px or 0.0, 2.0 * float(np.median(sigma[idx])))
         for j, (pa, _) in resid.items():
             # with the dense prior (a tall object) the parallax is curved on the scale of the
             # neighbourhood: test against local quadrics, which still reject steps
             _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
                                            quadratic=j in curved)
+            # the non-affine part of the parallax around each point: its model error
+            model_x[idx, j] = model_error_from_fit(grid[idx], rough, sig_x[idx, j],
+                                                   (side[idx] - 1) // 2, 12,
+                                                   6 if j in curved else 3)
+            if max_roughness_px is None:
+                continue
             bad = rough > thr
             for i, rr in zip(idx[bad], rough[bad]):
                 if valid[i]:
@@ -669,6 +681,8 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             reason[i] = (f"views inconsistent: x coordinates off the rank-2 tilt-series model "
                          f"by {mres[i]:.2f} px > {thr:.2f} px")
         valid &= ~bad
+    # error bars: noise σ with the a posteriori factor, plus the model error
+    sigma = np.sqrt(np.mean(sig_ap[:, others] ** 2 + model_x[:, others] ** 2, axis=1))
     sigma[~valid] = np.nan
     if progress:
         from tqdm.auto import tqdm

@@ -400,7 +400,26 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None):
     raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
 
 
-def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, seed=0):
+def view_sigmas(sigma_px, n_views, matched, ref_view=0):
+    """Per-view 1σ of the x coordinates, (N, V) pixels, for :func:`surface.height_sigma`.
+
+    A matched point (refined click or automatic match) keeps its reference-view position
+    exactly (it defines the material point) and its ``sigma_px`` is the error of the
+    *disparity*: the Gauss–Newton covariance of :func:`semlab.subset.icgn_refine` holds
+    the noise of both images. Counting it again in the reference view (``(N,)`` σ for every
+    view) made the height σ √2 too large. The reference view gets 1e-3 of the point's σ
+    (height_sigma needs positive values; the height σ changes by < 1e-6). Raw clicks
+    (``matched`` False) carry their click error in every view.
+    """
+    sig = np.asarray(sigma_px, float)
+    out = np.repeat(sig[:, None], n_views, axis=1)
+    m = np.asarray(matched, bool)
+    out[m, ref_view] = 1e-3 * sig[m]
+    return out
+
+
+def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, seed=0,
+                   sigma_views=None):
     """Heights at known (or estimated) tilts above the experiment's reference surface.
 
     Heights (:func:`semlab.reconstruct.heights_from_tilts`), their matching σ, the reference
@@ -416,13 +435,18 @@ def affine_heights(exp, pts, tilt, tilt_source, sigma_px, tilt_axis_deg=90.0, se
     xyz_um (N, 3), z_err_um (N,), ReferenceSurface, tilt_deg (V,), TiltCheck or None
         (None: fewer than :data:`MIN_TILT_CHECK_POINTS` points on the reference surface, the
         tilts are not checked)
+
+    ``sigma_views`` (N, V): per-view σ for the height σ (:func:`view_sigmas`); default
+    ``sigma_px`` in every view.
     """
     from . import tiltcheck
+
+    sig_z = sigma_px if sigma_views is None else sigma_views
 
     st = exp.stereo
     estimated = tilt_source in ("estimated", "vanishing_points")
     for _ in range(3 if estimated else 1):
-        xyz, z_err, ref = _heights_and_reference(pts, tilt, exp.pixel_size_um, sigma_px,
+        xyz, z_err, ref = _heights_and_reference(pts, tilt, exp.pixel_size_um, sig_z,
                                                  tilt_axis_deg, st.reference_region,
                                                  st.reference_points, seed)
         if estimated and _ < 2:
@@ -507,7 +531,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress,
                                                  tilt_matches=tilt_matches)
     # raw clicks carry no matching estimate: assume the typical hand-click error
-    sigma_px = np.clip(np.where(np.isfinite(sigma_px), sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
+    matched = np.isfinite(sigma_px)
+    sigma_px = np.clip(np.where(matched, sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)
     if exp.stereo.camera == "perspective":
         if lines_cal is None:
             raise GeometryError(
@@ -533,8 +558,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                                         region=exp.stereo.reference_region,
                                         three_points_px=exp.stereo.reference_points)
     else:
-        xyz_3d, z_err, ref, tilt, chk = affine_heights(exp, pts, tilt, tilt_source, sigma_px,
-                                                       axis_used, seed)
+        xyz_3d, z_err, ref, tilt, chk = affine_heights(
+            exp, pts, tilt, tilt_source, sigma_px, axis_used, seed,
+            sigma_views=view_sigmas(sigma_px, pts.shape[1], matched))
         if chk is None:
             calib["tilt_check"] = {"checked": False}
             notes.append(f"tilts not checked against the views: fewer than "

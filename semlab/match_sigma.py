@@ -1,0 +1,153 @@
+"""The error bar of a match: image noise, residual misfit and the local parallax field.
+
+The Gauss–Newton covariance of a subset (:attr:`semlab.subset.SubsetResult.sigma_px`) is
+the random error the *image noise* causes; it is right when the subset's shape function
+holds (``benchmarks/accuracy_matrix.py``: the noise-induced part of the error of automatic
+matches, measured against the same matches on noise-free views, is within 10 % of it).
+Where the surface relief is not affine over the subset (an extrusion's flank, a slip-band
+step, a curved grain) the match carries in addition a *model error*, the difference between
+the subset-weighted parallax and the parallax at its centre, which no noise term holds. Two
+measurements of it, both from the data:
+
+- :func:`aposteriori_sigma`: the least-squares a posteriori variance factor. The residual
+  variance of the matched subset over the one the measured noise predicts
+  (``residual_ratio``) scales the covariance when it exceeds 1 (textbook practice in
+  least-squares adjustment: the a posteriori σ₀² replaces the a priori one when it is
+  larger), so that a subset that does not fit its shape function reports a larger error.
+- :func:`parallax_model_error`: the RMS residual of a local plane through the parallax of
+  the point and its neighbours, with the expected noise part removed: the non-affine part
+  of the parallax field, scaled from the neighbourhood to the subset by the second moments
+  a quadratic parallax gives both (:func:`model_error_from_fit`).
+
+:func:`match_sigma` combines them in quadrature:
+``σ² = σ_noise² max(1, residual_ratio) + model²``.
+On the quick accuracy-matrix cells (automatic matches, realistic noise, ±5°) this moved
+the fraction of points within 1σ / 2σ from 53 / 80 % to 63 / 93 % (speckle) and from
+63 / 90 % to 67 / 95 % (polished).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .match_filters import _parallax_gradients
+
+__all__ = ["aposteriori_sigma", "parallax_model_error", "model_error_from_fit",
+           "excess_over_noise", "match_sigma"]
+
+
+def aposteriori_sigma(sigma_px, residual_ratio):
+    """Noise σ scaled by the a posteriori variance factor where the residual exceeds the noise.
+
+    Parameters
+    ----------
+    sigma_px : (N,) or (N, 2) array
+        Predicted σ from the image noise (pixels).
+    residual_ratio : (N,) array
+        Residual variance over the noise-predicted one
+        (:attr:`semlab.subset.SubsetResult.residual_ratio`); NaN is treated as 1.
+
+    Returns
+    -------
+    array like ``sigma_px``: ``sigma_px · sqrt(max(1, residual_ratio))``.
+    """
+    s = np.asarray(sigma_px, float)
+    rr = np.asarray(residual_ratio, float)
+    f = np.sqrt(np.maximum(1.0, np.where(np.isfinite(rr), rr, 1.0)))
+    return s * (f[:, None] if s.ndim == 2 else f)
+
+
+def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic=False):
+    """Model error of affine subsets from the non-affine part of the parallax field, pixels.
+
+    Parameters
+    ----------
+    xy : (N, 2) array of (x, y) pixels
+        Reference-view positions of the matched points (N >= 4).
+    parallax_px : (N,) array
+        Their parallax (pixels, e.g. the x disparity or its residual from a global affine).
+    sigma_px : (N,) array
+        Their noise σ (pixels).
+    half_window : int or (N,) array
+        Half size ``h`` of each point's square subset.
+    k : int
+        Neighbours of each local fit (the point included).
+    quadratic : bool
+        Fit local quadrics instead of planes (curved parallax of tall objects).
+
+    Returns
+    -------
+    (N,) array: :func:`model_error_from_fit` of the RMS residual of the local fits
+    (:func:`semlab.match_filters._parallax_gradients`).
+    """
+    xy = np.asarray(xy, float)
+    _, rough = _parallax_gradients(xy, np.asarray(parallax_px, float), k=k,
+                                   return_residual=True, quadratic=quadratic)
+    return model_error_from_fit(xy, rough, sigma_px, half_window, k, 6 if quadratic else 3)
+
+
+def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
+    """Centre bias of affine subsets from the RMS residual of local parallax fits, pixels.
+
+    ``rms_px`` is the RMS residual of a local plane (``n_par = 3``) through the parallax of
+    each point's ``k`` nearest neighbours (itself included). Its noise part, from the
+    neighbours' own σ (``mean σ² (k − n_par) / k``), is removed
+    (:func:`excess_over_noise`); what is left is the non-affine part of the parallax on the
+    scale of the neighbourhood. It is turned into the bias of the subset's centre by the
+    ratio of the second moments that a quadratic parallax ``κ |d|² / 2`` gives both: the
+    bias is ``κ ⟨|ξ|²⟩ / 2`` over the subset (``⟨|ξ|²⟩ = 2 h (h + 1) / 3`` for a
+    ``(2h+1)²`` square), the fit's residual RMS ``κ std(|d_k|²) / 2`` over the neighbour
+    offsets ``d_k``. With an 8-px grid and 21×21 subsets the ratio is about 0.9; neighbours
+    spread wider than the subset (sparse matches) are scaled down, subsets larger than the
+    neighbourhood (information-sized ones) up.
+
+    Returns
+    -------
+    (N,) array of pixels (0 where the field is as planar as the noise allows).
+    """
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(xy, float)
+    s = np.asarray(sigma_px, float)
+    s2 = np.where(np.isfinite(s), s, 0.0) ** 2        # NaN / inf σ: no noise estimate
+    kk = min(k, len(xy))
+    _, nb = cKDTree(xy).query(xy, k=kk)
+    nb = np.asarray(nb).reshape(len(xy), kk)
+    noise = np.sqrt(np.mean(s2[nb], axis=1) * max(kk - n_par, 0) / kk)
+    d2 = np.sum((xy[nb] - xy[:, None, :]) ** 2, axis=2)
+    h = np.broadcast_to(np.asarray(half_window, float), (len(xy),))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        geom = np.where(np.std(d2, axis=1) > 0, 2 * h * (h + 1) / 3 / np.std(d2, axis=1), 0.0)
+    return excess_over_noise(rms_px, noise) * geom
+
+
+def excess_over_noise(rms_px, sigma_px):
+    """``sqrt(max(0, rms² − σ²))``: the part of a scatter ``rms_px`` the noise σ does not
+    explain (NaN σ counts as 0)."""
+    s = np.asarray(sigma_px, float)
+    return np.sqrt(np.maximum(np.asarray(rms_px, float) ** 2
+                              - np.where(np.isfinite(s), s, 0.0) ** 2, 0.0))
+
+
+def match_sigma(sigma_noise_px, residual_ratio=None, model_px=None):
+    """Total 1σ of matches: ``sqrt(σ_noise² max(1, rr) + model²)``.
+
+    Parameters
+    ----------
+    sigma_noise_px : (N,) array
+        σ from the image noise (pixels).
+    residual_ratio : (N,) array, optional
+        See :func:`aposteriori_sigma`.
+    model_px : (N,) array, optional
+        Model error (pixels), e.g. from :func:`parallax_model_error`.
+
+    Returns
+    -------
+    (N,) array of pixels.
+    """
+    s = np.asarray(sigma_noise_px, float)
+    if residual_ratio is not None:
+        s = aposteriori_sigma(s, residual_ratio)
+    if model_px is not None:
+        s = np.sqrt(s ** 2 + np.nan_to_num(np.asarray(model_px, float)) ** 2)
+    return s

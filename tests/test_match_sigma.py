@@ -1,0 +1,67 @@
+"""Tests of semlab.match_sigma: error bars of matches beyond the image noise."""
+
+import numpy as np
+import pytest
+
+from semlab import pipeline, surface
+from semlab.match_sigma import (aposteriori_sigma, match_sigma, model_error_from_fit,
+                                parallax_model_error)
+
+
+def _grid(step=8, n=12):
+    g = np.mgrid[0:n, 0:n].reshape(2, -1).T[:, ::-1] * float(step)
+    return g + 20.0
+
+
+def test_aposteriori_factor_only_where_the_residual_exceeds_the_noise():
+    s = np.array([0.1, 0.1, 0.1, 0.1])
+    rr = np.array([0.8, 1.0, 4.0, np.nan])
+    assert np.allclose(aposteriori_sigma(s, rr), [0.1, 0.1, 0.2, 0.1])
+    s2 = np.column_stack([s, 2 * s])
+    assert np.allclose(aposteriori_sigma(s2, rr)[2], [0.2, 0.4])
+    assert np.allclose(match_sigma(s, rr, np.array([0, 0, 0, 0.3])), [0.1, 0.1, 0.2, np.hypot(0.1, 0.3)])
+
+
+def test_model_error_of_a_quadratic_parallax_is_the_subset_centre_bias():
+    """Known answer: a parallax κ|d|²/2 biases the centre of an affine (2h+1)² subset by
+    κ ⟨|ξ|²⟩ / 2 = κ h (h + 1) / 3, whatever the spacing of the matched grid."""
+    kappa, h = 2e-4, 10
+    bias = kappa * h * (h + 1) / 3
+    for step in (6, 8, 12):
+        xy = _grid(step, 14)
+        c = xy.mean(0)
+        par = 0.5 * kappa * np.sum((xy - c) ** 2, 1) + 0.01 * (xy[:, 0] - c[0])
+        m = parallax_model_error(xy, par, np.zeros(len(xy)), h)
+        inner = np.all(np.abs(xy - c) < 3 * step, 1)       # full neighbourhoods
+        assert np.median(m[inner]) == pytest.approx(bias, rel=0.15), step
+
+
+def test_model_error_of_a_plane_is_only_noise():
+    rng = np.random.default_rng(0)
+    xy = _grid(8, 16)
+    sig = np.full(len(xy), 0.05)
+    par = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + rng.normal(0, 0.05, len(xy))
+    m = parallax_model_error(xy, par, sig, 10)
+    assert np.median(m) < 0.02           # the noise is removed, not counted as model error
+    # a step through the field is model error where the neighbourhood straddles it
+    step = par + 0.5 * (xy[:, 0] > xy[:, 0].mean())
+    ms = parallax_model_error(xy, step, sig, 10)
+    near = np.abs(xy[:, 0] - xy[:, 0].mean()) < 8
+    assert np.median(ms[near]) > 0.1 and np.median(ms[~near & (np.abs(xy[:, 0] - xy[:, 0].mean()) > 30)]) < 0.02
+    with np.errstate(all="raise"):     # inf σ (texture below the noise) is no noise estimate
+        sig_inf = sig.copy()
+        sig_inf[3] = np.inf
+        assert np.all(np.isfinite(model_error_from_fit(xy, np.full(len(xy), 0.1), sig_inf, 10)))
+
+
+def test_height_sigma_of_matches_counts_the_disparity_error_once():
+    """A matched point's σ is that of its disparity (the reference position is exact): the
+    height σ is s cos θ0 σ / sin Δθ, not √2 times it; raw clicks err in both views."""
+    tilt = [-5.0, 5.0]
+    sig = np.array([0.1, 0.1])
+    sv = pipeline.view_sigmas(sig, 2, np.array([True, False]))
+    z = surface.height_sigma(sv, tilt, 0.03)
+    th = np.deg2rad(tilt)
+    one = 0.03 * 0.1 * np.cos(th[0]) / np.sin(th[1] - th[0])
+    assert z[0] == pytest.approx(one, rel=1e-5)
+    assert z[1] == pytest.approx(one * np.sqrt(2), rel=1e-3)
