@@ -28,7 +28,7 @@ rendered with a smooth parallax field of ±4 px, the frames with a displacement 
 
     python benchmarks/memory_large.py                 # all four cases, ~5-10 min on 2 cores
     python benchmarks/memory_large.py --cases icgn_tiled --size 1536x2048
-    python benchmarks/memory_large.py --run --map-roi 1024      # semlab run, ~15 min
+    python benchmarks/memory_large.py --run --map-roi 512       # semlab run, ~30 min shared
 """
 
 from __future__ import annotations
@@ -319,8 +319,8 @@ def main(argv=None):
     p.add_argument("--one", default="", help=argparse.SUPPRESS)   # run one case here
     p.add_argument("--run", action="store_true",
                    help="semlab run (stereo + heightmap) on a synthetic experiment instead")
-    p.add_argument("--map-roi", type=int, default=1024,
-                   help="side of the central height-map ROI of --run, px (default 1024)")
+    p.add_argument("--map-roi", type=int, default=512,
+                   help="side of the central height-map ROI of --run, px (default 512)")
     p.add_argument("--keep", default="", help="--run: copy the results to this folder")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.lower().split("x"))

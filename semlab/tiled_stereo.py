@@ -61,7 +61,8 @@ class TilingParams:
         discarded): the reach of the neighbour filters (8 nearest neighbours, twice), of
         the band orientation (2 half windows) and of the largest adaptive subset.
     dense_tile_px : int
-        Core tile of the dense map, pixels (multiple of 16).
+        Core tile of the dense map, pixels (multiple of 16; a subset at every pixel: a
+        256² tile with its halo holds ~0.4 GB of work arrays, benchmarks/memory_large.py).
     max_parallax_px : float
         Largest parallax left once a tile's view-1 crop is shifted by the median of its
         seeds' parallax (or the global affine), pixels: the crops reach this far.
@@ -72,7 +73,7 @@ class TilingParams:
     min_pixels: int = 2048 * 2048
     tile_px: int = 1024
     halo_px: int = 96
-    dense_tile_px: int = 512
+    dense_tile_px: int = 256
     max_parallax_px: float = 48.0
     prior_max_side_px: int = 1024
 
@@ -553,13 +554,16 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         cx, cy = (roi[0] + roi[2]) // 2, (roi[1] + roi[3]) // 2
         croi = (max(roi[0], cx - c // 2), max(roi[1], cy - c // 2),
                 min(roi[2], cx - c // 2 + c), min(roi[3], cy - c // 2 + c))
-        _, _, extras, _ = map_roi_tiles(
+        carrays, corigins, extras, cplans = map_roi_tiles(
             _parallax_tile, [v0, v1], croi, reach, tile_px=_round16(max(croi[2] - croi[0],
                                                                          croi[3] - croi[1])),
             points=seeds, args=(fn, p, cal), scheduler=scheduler, progress=progress,
             desc="dense calibration", offsets=offsets)
-        measured = extras[0][1]
-        cal = {**measured, **cal}
+        cal = {**extras[0][1], **cal}
+        if croi == roi and (roi[2] - roi[0]) <= t.dense_tile_px \
+                and (roi[3] - roi[1]) <= t.dense_tile_px:
+            # the region is one tile: the calibration window is the map
+            return _assemble(carrays, corigins, cplans, roi, p, [extras[0][0]], cal)
     arrays, origins, extras, plans = map_roi_tiles(
         _parallax_tile, [v0, v1], roi, reach, tile_px=t.dense_tile_px, points=seeds,
         args=(fn, p, cal), scheduler=scheduler, progress=progress, offsets=offsets)

@@ -138,5 +138,11 @@ def test_tiled_parallax_calibrates_once_and_takes_a_method(pair):
     assert out.valid.mean() > 0.9
     par = (out.x1_px - out.grid()[0])[out.valid]
     assert -2.7 < np.median(par) < -0.3        # view 1 sees the texture at x - parallax
+    calls.clear()                        # a one-tile region: the calibration call is the map
+    one = tiled_parallax(ref, cur, roi=(96, 96, 160, 160), params=p, method=method, tiling=t,
+                         progress=False)
+    assert len(calls) == 1 and one.valid.shape == (64, 64)
+    # the same pixels as the first tile of the larger region (its own σ factor and τ)
+    assert np.nanmedian(np.abs(one.x1_px - out.x1_px[:, :64])) < 0.01
     with pytest.raises(SemlabError, match="dense_parallax's signature"):
         tiled_parallax(ref, cur, method="variational", tiling=t, progress=False)
