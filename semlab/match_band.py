@@ -41,11 +41,11 @@ def _band_orientation(query_xy, grid_xy, grid_par, radius_px):
 
 
 def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, ref_coef,
-                     cur_coef):
+                     cur_coef, return_sigma=False):
     """Dense square-subset parallax on a grid every ``half_window`` px, for orientations.
 
     Returns grid points (G, 2) and the residual to the affine ``M`` along its principal
-    direction (NaN where unmatched).
+    direction (NaN where unmatched); with ``return_sigma`` also the noise σ of x (G,).
     """
     hgt, wid = ref_img.shape
     m = half_window + search_px + 2
@@ -54,7 +54,8 @@ def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, r
     gx, gy = np.meshgrid(xs, ys)
     grid = np.column_stack([gx.ravel(), gy.ravel()])
     if len(grid) < 6:
-        return grid, np.full(len(grid), np.nan)
+        nan = np.full(len(grid), np.nan)
+        return (grid, nan, nan) if return_sigma else (grid, nan)
     g0 = _apply_affine(M, grid)
     guess, _ = zncc_match(ref_img, img, grid, g0, half_window=half_window, search_px=search_px)
     L = M[:, :2] - np.eye(2)
@@ -65,7 +66,8 @@ def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, r
     ok = r.converged & (r.zncc > 0.5)
     res = r.pts - _apply_affine(M, grid)
     if ok.sum() < 6:
-        return grid, np.full(len(grid), np.nan)
+        nan = np.full(len(grid), np.nan)
+        return (grid, nan, nan) if return_sigma else (grid, nan)
     rc = res[ok] - np.median(res[ok], axis=0)
     _, _, vt = np.linalg.svd(rc, full_matrices=False)
     par = np.where(ok, res @ vt[0], np.nan)
@@ -73,6 +75,8 @@ def _coarse_parallax(ref_img, img, M, half_window, search_px, smooth_sigma_px, r
     good = np.isfinite(par)
     bad = _local_outliers(grid[good], par[good], 8, 0.5)
     par[np.flatnonzero(good)[bad]] = np.nan
+    if return_sigma:
+        return grid, par, np.where(np.isfinite(par), r.sigma_px[:, 0], np.nan)
     return grid, par
 
 

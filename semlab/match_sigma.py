@@ -33,7 +33,7 @@ import numpy as np
 from .match_filters import _parallax_gradients
 
 __all__ = ["aposteriori_sigma", "parallax_model_error", "model_error_from_fit",
-           "excess_over_noise", "match_sigma"]
+           "model_error_at", "excess_over_noise", "match_sigma"]
 
 
 def aposteriori_sigma(sigma_px, residual_ratio):
@@ -119,6 +119,51 @@ def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
     with np.errstate(divide="ignore", invalid="ignore"):
         geom = np.where(np.std(d2, axis=1) > 0, 2 * h * (h + 1) / 3 / np.std(d2, axis=1), 0.0)
     return excess_over_noise(rms_px, noise) * geom
+
+
+def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, k=12):
+    """Model error of affine subsets at points off a parallax grid (e.g. clicks), pixels.
+
+    As :func:`model_error_from_fit`, from the local plane through the ``k`` grid points
+    ``xy`` (finite ``parallax_px``) nearest to each query point, offsets taken from the
+    query point.
+
+    Parameters
+    ----------
+    query_xy : (Q, 2) array of (x, y) pixels
+    xy : (G, 2) array, parallax_px : (G,) array, sigma_px : (G,) array
+        A parallax field (e.g. a coarse grid of square-subset matches) and its noise σ.
+    half_window : int or (Q,) array
+        Half size of each query point's subset.
+
+    Returns
+    -------
+    (Q,) array of pixels; NaN when the grid has fewer than ``k`` finite points.
+    """
+    from scipy.spatial import cKDTree
+
+    q = np.asarray(query_xy, float).reshape(-1, 2)
+    ok = np.isfinite(np.asarray(parallax_px, float))
+    if ok.sum() < max(k, 4):
+        return np.full(len(q), np.nan)
+    g, par = np.asarray(xy, float)[ok], np.asarray(parallax_px, float)[ok]
+    s = np.asarray(sigma_px, float)[ok]
+    s2 = np.where(np.isfinite(s), s, 0.0) ** 2
+    _, nb = cKDTree(g).query(q, k=k)
+    nb = np.asarray(nb).reshape(len(q), k)
+    d = g[nb] - q[:, None, :]                                       # (Q, k, 2)
+    X = np.concatenate([np.ones((len(q), k, 1)), d], axis=2)
+    y = par[nb]
+    sol = np.linalg.solve(np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(3),
+                          np.einsum("nki,nk->ni", X, y)[..., None])[..., 0]
+    rms = np.sqrt(np.mean((y - np.einsum("nki,ni->nk", X, sol)) ** 2, axis=1))
+    noise = np.sqrt(np.mean(s2[nb], axis=1) * (k - 3) / k)
+    d2 = np.sum(d ** 2, axis=2)
+    h = np.broadcast_to(np.asarray(half_window, float), (len(q),))
+    sd = np.std(d2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        geom = np.where(sd > 0, 2 * h * (h + 1) / 3 / sd, 0.0)
+    return excess_over_noise(rms, noise) * geom
 
 
 def excess_over_noise(rms_px, sigma_px):

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from .adaptive import _grid_icgn
 from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
-from .match_sigma import aposteriori_sigma, model_error_from_fit
+from .match_sigma import aposteriori_sigma, match_sigma, model_error_at, model_error_from_fit
 from .match_band import _band_orientation, _coarse_parallax, _combine, _oriented_refine
 from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
                             _parallax_gradients)
@@ -193,13 +193,15 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                              target_sigma_px, max_half_window, progress=progress)
         side = np.maximum(side, np.where(r.converged, 2 * hw_j + 1, 0))
         pts_j, sig_j, zn_j = r.pts.copy(), r.sigma_px[:, 0].copy(), r.zncc.copy()
+        rr_j, model_j = r.residual_ratio.copy(), None
         ok_j = r.converged & (r.zncc >= min_zncc)
         nosearch = ~np.all(np.isfinite(guess), 1)
         if band_aware:
             Mj = fit_affine(pr, p[:, j]) if n >= 3 else np.column_stack(
                 [np.eye(2), np.median(p[:, j] - pr, axis=0)])
-            gxy, gpar = _coarse_parallax(ims[ref], ims[j], Mj, half_window, search_px,
-                                         smooth_sigma_px, ref_coef, cur_coef)
+            gxy, gpar, gsig = _coarse_parallax(ims[ref], ims[j], Mj, half_window, search_px,
+                                               smooth_sigma_px, ref_coef, cur_coef,
+                                               return_sigma=True)
             ang, _, _ = _band_orientation(pr, gxy, gpar, 2.0 * half_window)
             # every point with a usable start: square result, else the ZNCC peak
             start = np.where(np.isfinite(r.pts), r.pts, guess)
@@ -209,15 +211,21 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                 # by information): a thin subset of the smallest square's length beside a
                 # grown square is the noisier estimate, chosen by noise alone
                 o_len = 2 * np.where(hw_j > 0, hw_j, half_window)[sel]
-                o_pts, o_sig, o_zn = _oriented_refine(
+                o_pts, o_sig, o_zn, o_rr = _oriented_refine(
                     ims[ref], ims[j], pr[sel], start[sel], grad, ang[sel], o_len,
-                    band_half_width_px, smooth_sigma_px, ref_coef, cur_coef)
+                    band_half_width_px, smooth_sigma_px, ref_coef, cur_coef,
+                    return_residual_ratio=True)
                 sq = np.where(ok_j[sel, None], r.pts[sel], np.nan)
                 c_pts, c_sig, use = _combine(sq, sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
                                              kappa)
                 pts_j[sel], sig_j[sel] = c_pts, c_sig
+                rr_j[sel] = np.where(use, o_rr, rr_j[sel])
                 zn_j[sel] = np.where(use, o_zn, zn_j[sel])
                 ok_j[sel] |= use
+            # model error: the non-affine part of the coarse parallax around each click
+            model_j = model_error_at(pr, gxy, gpar, gsig, np.where(hw_j > 0, hw_j, half_window))
+        # error bar: noise σ with the a posteriori factor, plus the model error
+        sig_j = match_sigma(sig_j, rr_j, model_j)
         pts_j[~ok_j] = np.nan
         out[:, j] = pts_j
         zn[:, j] = zn_j

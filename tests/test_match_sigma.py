@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from semlab import pipeline, surface
-from semlab.match_sigma import (aposteriori_sigma, match_sigma, model_error_from_fit,
+from semlab.match_sigma import (aposteriori_sigma, match_sigma, model_error_at,
+                                model_error_from_fit,
                                 parallax_model_error)
 
 
@@ -65,3 +66,18 @@ def test_height_sigma_of_matches_counts_the_disparity_error_once():
     one = 0.03 * 0.1 * np.cos(th[0]) / np.sin(th[1] - th[0])
     assert z[0] == pytest.approx(one, rel=1e-5)
     assert z[1] == pytest.approx(one * np.sqrt(2), rel=1e-3)
+
+
+def test_model_error_at_clicks_off_the_grid():
+    """The same known answer at query points between the grid points (refined clicks on
+    the coarse parallax grid); NaN where the grid has too few matches."""
+    kappa, h = 2e-4, 7
+    xy = _grid(10, 14)
+    c = xy.mean(0)
+    par = 0.5 * kappa * np.sum((xy - c) ** 2, 1)
+    q = c + np.array([[3.3, -4.1], [-2.5, 6.2], [0.0, 0.0]])
+    m = model_error_at(q, xy, par, np.zeros(len(xy)), h)
+    assert np.allclose(m, kappa * h * (h + 1) / 3, rtol=0.2)
+    flat = model_error_at(q, xy, 0.01 * xy[:, 0], np.full(len(xy), 0.05), h)
+    assert np.all(flat == 0)
+    assert np.all(np.isnan(model_error_at(q, xy[:5], par[:5], np.zeros(5), h)))

@@ -122,7 +122,9 @@ def test_refined_clicks_reach_height_accuracy(stereo):
     rms = np.sqrt(np.mean(err ** 2))
     assert rms <= 0.008
     assert np.sqrt(np.mean(err_raw ** 2)) > 5 * rms
-    assert np.all(np.isfinite(r.sigma_px)) and np.all(r.sigma_px < 0.05)
+    # the error bars hold the model error near the extrusion edges too (match_sigma)
+    assert np.all(np.isfinite(r.sigma_px)) and np.median(r.sigma_px) < 0.05
+    assert np.all(r.sigma_px < 0.1)
 
 
 def test_band_aware_subsets_reduce_edge_bias():
