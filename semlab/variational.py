@@ -106,6 +106,8 @@ class VariationalParams:
     seed: int = 0
     prior_scale_px: float | None = None
     prior_window_px: int = 15
+    max_step_px: float = 0.0
+    prior_order: int = 1
     sigma_mode: str = "posterior"
 
 
@@ -199,24 +201,46 @@ def _down(a):
     return ndimage.gaussian_filter(a, 1.0, mode="reflect")[::2, ::2]
 
 
-def _laplace_apply(x, wh, wv):
-    """``Gᵀ W G x`` for the 4-neighbour graph with edge weights ``wh`` (H, W−1), ``wv``."""
-    out = np.zeros_like(x)
-    fh = wh * (x[:, 1:] - x[:, :-1])
-    out[:, 1:] += fh
-    out[:, :-1] -= fh
-    fv = wv * (x[1:] - x[:-1])
-    out[1:] += fv
-    out[:-1] -= fv
+_STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0)}
+
+
+def _diff(x, axis, order):
+    """Finite difference of ``order`` 1 or 2 along ``axis`` (``n − order`` values)."""
+    n = x.shape[axis]
+    take = lambda k: x[:, k:n - order + k] if axis == 1 else x[k:n - order + k]  # noqa: E731
+    return sum(c * take(k) for k, c in enumerate(_STENCILS[order]))
+
+
+def _diff_t(f, axis, order, shape):
+    """Adjoint of :func:`_diff`: scatter ``f`` back onto an array of ``shape``."""
+    out = np.zeros(shape)
+    n = shape[axis]
+    for k, c in enumerate(_STENCILS[order]):
+        if axis == 1:
+            out[:, k:n - order + k] += c * f
+        else:
+            out[k:n - order + k] += c * f
     return out
 
 
+def _order(x_shape, wh):
+    return x_shape[1] - wh.shape[1]
+
+
+def _laplace_apply(x, wh, wv):
+    """``Gᵀ W G x``, ``G`` the first or second differences (order read from ``wh``)."""
+    o = _order(x.shape, wh)
+    return (_diff_t(wh * _diff(x, 1, o), 1, o, x.shape)
+            + _diff_t(wv * _diff(x, 0, o), 0, o, x.shape))
+
+
 def _laplace_diag(wh, wv, shape):
+    o = _order(shape, wh)
     d = np.zeros(shape)
-    d[:, 1:] += wh
-    d[:, :-1] += wh
-    d[1:] += wv
-    d[:-1] += wv
+    n, m = shape
+    for k, c in enumerate(_STENCILS[o]):
+        d[:, k:m - o + k] += c * c * wh
+        d[k:n - o + k] += c * c * wv
     return d
 
 
@@ -451,9 +475,9 @@ def _upsample(d, shape):
     return 2.0 * ndimage.map_coordinates(d, [yy / 2.0, xx / 2.0], order=1, mode="nearest")
 
 
-def _edge_weights(d, s, c):
-    wh = _huber_w(np.diff(d, axis=1) / s, c) / s ** 2
-    wv = _huber_w(np.diff(d, axis=0) / s, c) / s ** 2
+def _edge_weights(d, s, c, order=1):
+    wh = _huber_w(_diff(d, 1, order) / s, c) / s ** 2
+    wv = _huber_w(_diff(d, 0, order) / s, c) / s ** 2
     return wh, wv
 
 
@@ -469,12 +493,9 @@ def _samples(D, wh, wv, prm, rng, n, prior=True):
         if not prior:
             out.append(_cg(D, wh, wv, b, np.zeros_like(b), prm.cg_iter, prm.cg_tol))
             continue
-        fh = np.sqrt(wh) * rng.standard_normal(wh.shape)
-        b[:, 1:] += fh
-        b[:, :-1] -= fh
-        fv = np.sqrt(wv) * rng.standard_normal(wv.shape)
-        b[1:] += fv
-        b[:-1] -= fv
+        o = _order(D.shape, wh)
+        b += _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, o, D.shape)
+        b += _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, o, D.shape)
         out.append(_cg(D, wh, wv, b, np.zeros_like(b), prm.cg_iter, prm.cg_tol))
     return out
 
@@ -497,6 +518,8 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
         finest = li == 0
         if s is None:
             s = _window_scale(lv, dl, e, scale, prm.prior_window_px)
+            if prm.prior_order == 2:
+                s = s / prm.prior_window_px
             info["prior_rule"] = f"data-only 1σ of a {prm.prior_window_px}-px window"
         sl = s * np.sqrt(scale)             # random-walk prior: variance grows with the lag
         for _ in range(prm.warps):
@@ -513,14 +536,16 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
                 wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
                               / (k * sig) ** 2, 0.0)
                 D = wd * J * J
-                wh, wv = _edge_weights(dl, sl, prm.smooth_huber)
+                wh, wv = _edge_weights(dl, sl, prm.smooth_huber, prm.prior_order)
                 dl = _cg(D, wh, wv, D * dw - wd * J * r0, dl, prm.cg_iter, prm.cg_tol)
+                if prm.max_step_px:
+                    dl = dw + np.clip(dl - dw, -prm.max_step_px, prm.max_step_px)
     # posterior variance at the last linearisation
     w1, J, sig, inside = pyr[0].warp(dl, e, 1.0)
     r0 = w1 - pyr[0].n0
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
-    wh, wv = _edge_weights(dl, s, prm.smooth_huber)
+    wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
     xs = _samples(D, wh, wv, prm, rng, prm.n_samples, prm.sigma_mode == 'posterior')
     var = np.mean([x * x for x in xs], 0)
     if prm.sigma_mode == "noise+bias":
