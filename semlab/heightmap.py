@@ -722,6 +722,9 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     stereo : semlab.pipeline.StereoResult
         Its matches seed the guess and its heights fix the :class:`HeightModel` (so the
         map is above the same reference plane as ``points3d.csv``).
+    params : DenseParams or semlab.variational.VariationalParams, optional
+        The subset map (default) or the variational refinement
+        (:func:`semlab.variational.variational_parallax`).
     roi : (x0, y0, x1, y1), optional
         Half-open window of view-0 pixels to map (default the whole view).
     tiling : semlab.tiled_stereo.TilingParams, optional
@@ -756,14 +759,22 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
         notes.append(f"only {len(stereo.pts)} points: heights from the tilts above the "
                      "camera model's z = 0 plane, not the points' reference plane")
     from .tiled_stereo import DEFAULT_TILING, tiled_parallax
+    from .variational import VariationalParams, variational_parallax
 
     t = tiling or DEFAULT_TILING
+    method = variational_parallax if isinstance(params, VariationalParams) else None
+    if method is not None:
+        notes.append("variational parallax (semlab.variational.refine_parallax)")
     if t.tiles(np.shape(views[0])):
         par = tiled_parallax(views[0], views[1], seeds=stereo.pts[:, :2], roi=roi,
-                             params=params, tiling=t, scheduler=scheduler, progress=progress)
+                             params=params, method=method, tiling=t, scheduler=scheduler,
+                             progress=progress)
         hm = _heights(par, model, exp.pixel_size_um)
         notes.append(f"mapped in {t.dense_tile_px} px tiles with one calibration "
                      "(semlab.tiled_stereo.tiled_parallax)")
+    elif method is not None:
+        hm = _heights(variational_parallax(views[0], views[1], seeds=stereo.pts[:, :2],
+                                           roi=roi, params=params), model, exp.pixel_size_um)
     else:
         hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
                            seeds=stereo.pts[:, :2], roi=roi, params=params, model=model,

@@ -46,7 +46,8 @@ from scipy import ndimage
 
 from .errors import ImageError, SemlabError
 
-__all__ = ["VariationalParams", "normalise_local", "fit_epipolar", "refine_parallax"]
+__all__ = ["VariationalParams", "normalise_local", "fit_epipolar", "refine_parallax",
+           "variational_parallax"]
 
 
 @dataclass(frozen=True)
@@ -75,9 +76,12 @@ class VariationalParams:
         Gaussian σ of the smoothing of the sample variances.
     cg_iter : int
         Conjugate-gradient iterations per solve (maximum); ``cg_tol`` relative residual.
-    margin_px : int
+    margin : int
         Pixels around a ``roi`` included in the solve (the result inside the ``roi`` hardly
-        depends on the images farther away).
+        depends on the images farther away); see :meth:`margin_px`.
+    half_window : int
+        Half size of the windows of the initial guess (:func:`semlab.heightmap.initial_guess`)
+        used by :func:`variational_parallax`.
     seed : int
         Seed of the posterior samples.
     prior_scale_px : float, optional
@@ -102,13 +106,18 @@ class VariationalParams:
     sigma_smooth_px: float = 2.0
     cg_iter: int = 300
     cg_tol: float = 1e-5
-    margin_px: int = 32
+    margin: int = 32
+    half_window: int = 7
     seed: int = 0
     prior_scale_px: float | None = None
     prior_window_px: int = 15
     max_step_px: float = 0.0
     prior_order: int = 1
     sigma_mode: str = "posterior"
+
+    def margin_px(self):
+        """Pixels around a window that its result depends on (as ``DenseParams``)."""
+        return int(self.margin)
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -356,7 +365,7 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         the second channel of ``parallax0``, or zeros.
     roi : (x0, y0, x1, y1), optional
         Half-open window of view-0 pixels to return; the solve covers it plus
-        ``params.margin_px``.
+        ``params.margin_px()``.
     params : VariationalParams, optional
     noise_sigma : (2,) floats, optional
         White-noise σ of the two views (grey units); default measured on the whole images.
@@ -413,7 +422,7 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     if noise_sigma is None:
         noise_sigma = (image_noise_sigma(v0), image_noise_sigma(v1))
     # the solve window: roi + margin in view 0, view 1 cropped around its matches
-    m = int(prm.margin_px)
+    m = prm.margin_px()
     wx0, wy0 = max(0, roi[0] - m), max(0, roi[1] - m)
     wx1, wy1 = min(wid, roi[2] + m), min(hgt, roi[3] + m)
     d = _fill(p0, ok0)[wy0:wy1, wx0:wx1]
@@ -440,6 +449,7 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     valid = inside[sl] & np.isfinite(dd[sl]) & np.isfinite(sig[sl])
     par = np.where(valid, dd[sl], np.nan)
     sg = np.where(valid, sig[sl], np.nan)
+    info["_zncc"] = np.where(valid, info["_zncc"][sl], -1.0)
     if return_info:
         return par, sg, valid, info
     return par, sg, valid
@@ -555,6 +565,94 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
         var = var + bias ** 2
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
+    g = lambda a: ndimage.gaussian_filter(a, prm.norm_sigma_px, mode="reflect")  # noqa: E731
+    with np.errstate(invalid="ignore", divide="ignore"):
+        info["_zncc"] = g(pyr[0].n0 * w1) / np.sqrt(g(pyr[0].n0 ** 2) * g(w1 ** 2))
     info.update(prior_scale_px=float(s), noise_factor=float(k),
                 levels=nl, median_sigma_px=float(np.median(np.sqrt(var))))
     return dl, var, inside
+
+
+def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
+                         calibration=None, progress=False):
+    """Dense correspondences of the view-0 pixels of ``roi`` by :func:`refine_parallax`.
+
+    Same signature and result as :func:`semlab.heightmap.dense_parallax` (so
+    :func:`semlab.tiled_stereo.tiled_parallax` can tile it with ``method=``): the initial
+    guess is :func:`semlab.heightmap.initial_guess` (DIS flow after the seeds' dense prior),
+    the x-parallax is refined, ``y1`` follows from the fitted epipolar relation.
+
+    Parameters
+    ----------
+    view0, view1 : (H, W) arrays
+    seeds : (N, 2, 2) array, optional
+        Sparse matches ``[:, v] = (x, y)`` in view ``v``.
+    roi : (x0, y0, x1, y1), optional
+    params : VariationalParams, optional
+    guess : (H, W, 2) array or the tuple of ``initial_guess``, optional
+        View-1 positions of every view-0 pixel (whole-image grid); overrides the flow.
+    calibration : dict, optional
+        ``noise_sigma`` (2,), ``epipolar`` (4,), ``prior_scale_px``: shared between tiles;
+        missing ones are measured (the epipolar relation from ``seeds`` when there are 8,
+        else from the flow; the prior scale in the call's window).
+    progress : bool
+        Unused (the signature of ``dense_parallax``).
+
+    Returns
+    -------
+    semlab.heightmap.DenseParallax
+        ``sigma_scale`` is the noise factor ``k``; ``zncc`` the local correlation of the
+        normalised views after the warp (Gaussian window ``norm_sigma_px``).
+    """
+    from dataclasses import replace
+
+    from .heightmap import DenseParallax, _check_roi, initial_guess
+
+    prm = params or VariationalParams()
+    v0 = np.asarray(view0, float)
+    hgt, wid = v0.shape[:2] if v0.ndim == 2 else (0, 0)
+    if guess is None:
+        _check_inputs(view0, view1, np.zeros(v0.shape), None)
+        roi_c = _check_roi(roi, v0.shape)
+        if seeds is None and roi_c != (0, 0, wid, hgt):
+            # the flow of the window only (the result depends on it alone)
+            m = prm.margin_px() + 4 * prm.half_window
+            wx0, wy0 = max(0, roi_c[0] - m), max(0, roi_c[1] - m)
+            wx1, wy1 = min(wid, roi_c[2] + m), min(hgt, roi_c[3] + m)
+            gw, _, _ = initial_guess(v0[wy0:wy1, wx0:wx1],
+                                     np.asarray(view1, float)[wy0:wy1, wx0:wx1], None,
+                                     prm.half_window)
+            g = np.full((hgt, wid, 2), np.nan)
+            g[wy0:wy1, wx0:wx1] = gw + np.array([wx0, wy0], float)
+        else:
+            g, _, _ = initial_guess(v0, np.asarray(view1, float), seeds, prm.half_window)
+    else:
+        g = np.asarray(guess[0] if isinstance(guess, tuple) else guess, float)
+        if g.shape != (hgt, wid, 2):
+            raise SemlabError(f"guess must be an (H, W, 2) = ({hgt}, {wid}, 2) array of view-1 "
+                              f"positions or the tuple of initial_guess, got shape {g.shape}")
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
+    p0 = np.stack([g[..., 0] - xx, g[..., 1] - yy], -1)
+    cal = dict(calibration or {})
+    if cal.get("epipolar") is None and seeds is not None and len(seeds) >= 8:
+        # the sparse matches fix the epipolar relation far better than the flow's y
+        sd = np.asarray(seeds, float)
+        cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0], sd[:, 1, 1])
+    if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
+        prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))
+    par, sig, valid, info = refine_parallax(view0, view1, p0, np.all(np.isfinite(p0), -1),
+                                            epipolar=cal.get("epipolar"), roi=roi, params=prm,
+                                            noise_sigma=cal.get("noise_sigma"),
+                                            return_info=True)
+    roi = _check_roi(roi, v0.shape)
+    gx, gy = xx[roi[1]:roi[3], roi[0]:roi[2]], yy[roi[1]:roi[3], roi[0]:roi[2]]
+    e = info["epipolar"]
+    nanv = lambda a: np.where(valid, a, np.nan)  # noqa: E731
+    zncc = info.pop("_zncc")
+    cal.update({k: np.asarray(v).tolist() for k, v in info.items()
+                if k in ("noise_sigma", "epipolar", "prior_scale_px", "noise_factor")})
+    return DenseParallax(x1_px=nanv(gx + par),
+                         y1_px=nanv(gy + e[0] + e[1] * gx + e[2] * gy + e[3] * par),
+                         sigma_px=sig, sigma_y_px=nanv(np.abs(e[3]) * sig), valid=valid,
+                         zncc=zncc, roi=roi, sigma_scale=float(info["noise_factor"]),
+                         params=params or VariationalParams(), calibration=cal)
