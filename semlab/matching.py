@@ -651,9 +651,16 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
                                            quadratic=j in curved)
             # the non-affine part of the parallax around each point: its model error
-            model_x[idx, j] = model_error_from_fit(grid[idx], rough, sig_x[idx, j],
-                                                   (side[idx] - 1) // 2, 12,
-                                                   6 if j in curved else 3)
+            # the neighbourhood of each fit covers the point's subset (information-sized
+            # subsets grow past 12 grid neighbours)
+            hs = (side[idx] - 1) // 2
+            for h in np.unique(hs):
+                k_h = int(min(len(idx), max(12, min(64, round((2 * h + 1) ** 2 / spacing_px ** 2)))))
+                rough_h = rough if k_h == 12 else _parallax_gradients(
+                    grid[idx], pa[idx], k=k_h, return_residual=True, quadratic=j in curved)[1]
+                m = hs == h
+                model_x[idx[m], j] = model_error_from_fit(
+                    grid[idx], rough_h, sig_x[idx, j], h, k_h, 6 if j in curved else 3)[m]
             if max_roughness_px is None:
                 continue
             bad = rough > thr
