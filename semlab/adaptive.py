@@ -11,9 +11,12 @@ function is chosen by what the information supports:
 - otherwise **translation**, with the gradient terms held at ``init_warp`` (e.g. the
   known x-scaling of a tilt pair or a registration's affine part): two parameters instead
   of six, so a smaller predicted error from the same pixels. It is accepted only when the
-  held gradient fits: its residual may not exceed the affine fit's by more than the
-  chi-square scatter of the residual variance (three standard deviations of
-  ``sqrt(2 / dof)``), otherwise the model would bias the match and the subset grows.
+  held gradient costs less than it saves: the translation's squared position bias,
+  estimated from its disagreement with the affine fit of the same subset, plus its
+  variance must stay below the affine fit's variance (:func:`_gradient_holds`, a
+  Hausman-type comparison of the two estimates); otherwise the subset grows or stays
+  affine. (Comparing the two residuals instead, within the chi-square scatter of one
+  residual variance, let held gradients 0.02–0.04 off pass and doubled the error.)
 
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
@@ -152,12 +155,16 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             # fit its shape function (curved parallax, a step); a translation must fit as
             # well as the affine fit: such a match is only a fallback, never "target met"
             fits = r.converged & (r.residual_ratio <= 1 + scatter)
-            if name == "translation" and warp == "auto":
-                ra = cand[0][1]
-                fits &= ~ra.converged | (r.residual_ratio <= ra.residual_ratio + scatter)
             s = np.where(r.converged, np.nanmax(r.sigma_px, axis=1, initial=-np.inf), np.inf)
             s = np.where(np.isnan(s), np.inf, s)
             ok_now = (s <= target_sigma_px) & fits
+            if name == "translation" and warp == "auto":
+                ra = cand[0][1]
+                holds, bias2 = _gradient_holds(ra, r)
+                fits &= holds
+                s = np.sqrt(s ** 2 + bias2)   # its target counts the estimated bias too
+                # unverified (no affine fit to compare with): a candidate, never the target
+                ok_now = (s <= target_sigma_px) & fits & ra.converged
             bf = best_fits[todo]
             better = ~met[todo] & (ok_now | (fits & (~bf | (s < best_sig[todo])))
                                    | (~fits & ~bf & ~np.isfinite(best_sig[todo])
@@ -185,6 +192,28 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     best = replace(best, reason=reason.astype(str) if n else best.reason)
     return AdaptiveResult(subset=best, half_window=hw, shape_function=shape.astype(str),
                           target_met=met, target_sigma_px=float(target_sigma_px))
+
+
+def _gradient_holds(ra, rt):
+    """(N,) bool where the held gradient of translation ``rt`` costs less than the affine
+    fit ``ra`` of the same subsets, by estimated mean-square error of the position, and
+    (N,) the translation's estimated squared bias (px², 0 where there is no affine fit).
+
+    Under a right held gradient both estimate the same position, the translation with the
+    smaller variance, so their difference ``d`` has variance ``σ_a² − σ_t²`` (Hausman
+    1978); the translation's squared bias is estimated without bias by
+    ``|d|² − Σ(σ_a² − σ_t²)`` and its MSE stays below the affine's while
+    ``|d|² <= 2 Σ(σ_a² − σ_t²)`` (x and y summed). Where the affine fit did not converge
+    there is nothing to compare with: the translation holds, but does not count as
+    reaching the target (the subset grows to find a comparison). A translation reaches
+    the target only with its bias: ``sqrt(σ_t² + bias²) <= target_sigma_px``.
+    """
+    d2 = np.sum((rt.pts - ra.pts) ** 2, axis=1)
+    dv = np.sum(ra.sigma_px ** 2 - rt.sigma_px ** 2, axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = d2 <= 2 * np.maximum(dv, 0)
+        bias2 = np.where(np.isfinite(d2) & np.isfinite(dv), np.maximum(d2 - dv, 0), 0.0)
+    return ~ra.converged | (~np.isfinite(dv) & np.isfinite(d2)) | ok, bias2
 
 
 def _empty(n, noise_sigma):
