@@ -217,7 +217,13 @@ def run_semlab(size, map_roi, keep=None):
         d = (z[ok] - zt[ok]).astype(float)
         coef, *_ = np.linalg.lstsq(A, d, rcond=None)
         rmse_nm = float(np.sqrt(np.mean((d - A @ coef) ** 2)) * 1e3)
+        steps = {}
+        for line in (out / ".semlab" / "steps.jsonl").read_text().splitlines():
+            e = _json.loads(line)
+            if e.get("event") == "computed":
+                steps[e["step"]] = round(float(e["seconds"]), 1)
         info = {"case": "semlab_run", "size": f"{h}x{w}, map {c}x{c} ROI",
+                "stereo_s": steps.get("stereo"), "heightmap_s": steps.get("heightmap"),
                 "points": int(len(pts)), "map_valid": float(ok.mean()),
                 "map_rmse_nm": round(rmse_nm, 1), "write_s": round(t_write, 1),
                 "seconds": round(seconds, 1), "peak_rss_gb": round(peak_all / 1e9, 3),
@@ -329,11 +335,12 @@ def main(argv=None):
         print(r)
         print(f"\nmemory_large.py --run, {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores\n")
         print("| run | size | stereo points | map valid | map RMSE vs truth (nm, plane removed) "
-              "| time (s) | peak RSS, semlab + children (GB) | semlab process (GB) |")
+              "| time: stereo, heightmap, whole run (s) | peak RSS, semlab + children (GB) "
+              "| semlab process (GB) |")
         print("|---|---|---|---|---|---|---|---|")
         print(f"| semlab run --only 04 | {r['size']} | {r['points']} | {r['map_valid']:.1%} | "
-              f"{r['map_rmse_nm']} | {r['seconds']} | {r['peak_rss_gb']} | "
-              f"{r['semlab_process_gb']} |")
+              f"{r['map_rmse_nm']} | {r['stereo_s']}, {r['heightmap_s']}, {r['seconds']} | "
+              f"{r['peak_rss_gb']} | {r['semlab_process_gb']} |")
         return 0
     if args.one:
         print("RESULT " + json.dumps(run_case(args.one, (h, w), args.spacing, args.frames,
