@@ -146,3 +146,26 @@ def test_tiled_parallax_calibrates_once_and_takes_a_method(pair):
     assert np.nanmedian(np.abs(one.x1_px - out.x1_px[:, :64])) < 0.01
     with pytest.raises(SemlabError, match="dense_parallax's signature"):
         tiled_parallax(ref, cur, method="variational", tiling=t, progress=False)
+
+
+def test_the_run_steps_take_the_tiled_path_above_the_threshold(small_experiment_master):
+    from semlab import pipeline
+    from semlab.experiment import load
+    from semlab.heightmap import heightmap_from_stereo
+
+    exp = load(small_experiment_master)                       # 96 × 128 views
+    small = TilingParams(min_pixels=0, tile_px=64, halo_px=48, dense_tile_px=64)
+    views = exp.views()
+    a = tiled_stereo.run_auto_match(views, progress=False)                 # untiled
+    b = tiled_stereo.run_auto_match(views, tiling=small, progress=False)   # 2 × 2 tiles
+    assert np.array_equal(a.pts[:, 0], b.pts[:, 0]) and (a.valid == b.valid).mean() > 0.95
+    st = pipeline.run_stereo(exp, n_boot=0, progress=False)
+    whole = heightmap_from_stereo(exp, st)
+    tiled = heightmap_from_stereo(exp, st, tiling=small, roi=(0, 0, 128, 96))
+    assert any("tiles" in n for n in tiled.notes) and not any("tiles" in n for n in whole.notes)
+    assert tiled.model == whole.model and tiled.z_um.shape == whole.z_um.shape
+    both = tiled.valid & whole.valid
+    assert both.mean() > 0.8
+    # one calibration from the central 64² window instead of the whole map's: the same
+    # heights within a nanometre or so
+    assert np.median(np.abs(tiled.z_um[both] - whole.z_um[both])) < 0.002
