@@ -91,8 +91,8 @@ def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
 
     ``rms_px`` is the RMS residual of a local plane (``n_par = 3``) through the parallax of
     each point's ``k`` nearest neighbours (itself included). Its noise part, from the
-    neighbours' own σ (``mean σ² (k − n_par) / k``), is removed
-    (:func:`excess_over_noise`); what is left is the non-affine part of the parallax on the
+    neighbours' own σ and the overlap of their subsets (:func:`_fit_noise_rms`, with the
+    point's ``half_window``), is removed (:func:`excess_over_noise`); what is left is the non-affine part of the parallax on the
     scale of the neighbourhood. It is turned into the bias of the subset's centre by the
     ratio of the second moments that a quadratic parallax ``κ |d|² / 2`` gives both: the
     bias is ``κ ⟨|ξ|²⟩ / 2`` over the subset (``⟨|ξ|²⟩ = 2 h (h + 1) / 3`` for a
@@ -113,15 +113,16 @@ def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
     kk = min(k, len(xy))
     _, nb = cKDTree(xy).query(xy, k=kk)
     nb = np.asarray(nb).reshape(len(xy), kk)
-    noise = np.sqrt(np.mean(s2[nb], axis=1) * max(kk - n_par, 0) / kk)
-    d2 = np.sum((xy[nb] - xy[:, None, :]) ** 2, axis=2)
+    d = xy[nb] - xy[:, None, :]
     h = np.broadcast_to(np.asarray(half_window, float), (len(xy),))
+    noise = _fit_noise_rms(d, np.sqrt(s2)[nb], h, n_par)
+    d2 = np.sum(d ** 2, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         geom = np.where(np.std(d2, axis=1) > 0, 2 * h * (h + 1) / 3 / np.std(d2, axis=1), 0.0)
     return excess_over_noise(rms_px, noise) * geom
 
 
-def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, k=12):
+def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, grid_half_window, k=12):
     """Model error of affine subsets at points off a parallax grid (e.g. clicks), pixels.
 
     As :func:`model_error_from_fit`, from the local plane through the ``k`` grid points
@@ -135,6 +136,8 @@ def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, k=12):
         A parallax field (e.g. a coarse grid of square-subset matches) and its noise σ.
     half_window : int or (Q,) array
         Half size of each query point's subset.
+    grid_half_window : int
+        Half size of the grid's subsets (their overlap correlates the grid's noise).
 
     Returns
     -------
@@ -157,13 +160,40 @@ def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, k=12):
     sol = np.linalg.solve(np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(3),
                           np.einsum("nki,nk->ni", X, y)[..., None])[..., 0]
     rms = np.sqrt(np.mean((y - np.einsum("nki,ni->nk", X, sol)) ** 2, axis=1))
-    noise = np.sqrt(np.mean(s2[nb], axis=1) * (k - 3) / k)
-    d2 = np.sum(d ** 2, axis=2)
     h = np.broadcast_to(np.asarray(half_window, float), (len(q),))
+    noise = _fit_noise_rms(d, np.sqrt(s2)[nb], grid_half_window, 3)
+    d2 = np.sum(d ** 2, axis=2)
     sd = np.std(d2, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         geom = np.where(sd > 0, 2 * h * (h + 1) / 3 / sd, 0.0)
     return excess_over_noise(rms, noise) * geom
+
+
+def _fit_noise_rms(d, s_nb, noise_half_window, n_par=3):
+    """Expected RMS residual from noise alone of local least-squares fits, pixels.
+
+    ``d`` (n, k, 2): neighbour offsets from each fit's centre; ``s_nb`` (n, k): their noise
+    σ. Neighbouring subsets share pixels, so their errors are correlated, about as the
+    overlap of two ``(2h+1)²`` squares: ``ρ = (1 − |Δx|/(2h+1)) (1 − |Δy|/(2h+1))``
+    (``h = noise_half_window``, per fit or one). The residual of the fit (plane, or quadric
+    with ``n_par = 6``) then has ``E |r|² = tr((I − P) Σ)``, ``P`` the fit's projection and
+    ``Σ = σ_i σ_j ρ_ij``: correlated noise moves neighbours together, which a plane absorbs.
+    """
+    n, k, _ = d.shape
+    cols = [np.ones((n, k, 1)), d]
+    if n_par == 6:
+        sc = max(float(np.median(np.abs(d))), 1e-9)
+        q = d / sc
+        cols.append(np.stack([q[..., 0] ** 2, q[..., 0] * q[..., 1], q[..., 1] ** 2], -1))
+    X = np.concatenate(cols, axis=2)
+    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(X.shape[2])
+    P = np.einsum("nki,nij,nlj->nkl", X, np.linalg.inv(XtX), X)
+    w = 2.0 * np.broadcast_to(np.asarray(noise_half_window, float), (n,)) + 1.0
+    dd = np.abs(d[:, :, None, :] - d[:, None, :, :])               # (n, k, k, 2)
+    rho = np.prod(np.clip(1.0 - dd / w[:, None, None, None], 0.0, None), axis=3)
+    S = s_nb[:, :, None] * s_nb[:, None, :] * rho
+    tr = np.einsum("nkk->n", S) - np.einsum("nkl,nlk->n", P, S)
+    return np.sqrt(np.maximum(tr, 0.0) / k)
 
 
 def excess_over_noise(rms_px, sigma_px):

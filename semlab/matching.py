@@ -223,7 +223,8 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                 zn_j[sel] = np.where(use, o_zn, zn_j[sel])
                 ok_j[sel] |= use
             # model error: the non-affine part of the coarse parallax around each click
-            model_j = model_error_at(pr, gxy, gpar, gsig, np.where(hw_j > 0, hw_j, half_window))
+            model_j = model_error_at(pr, gxy, gpar, gsig, np.where(hw_j > 0, hw_j, half_window),
+                                     half_window)
         # error bar: noise σ with the a posteriori factor, plus the model error
         sig_j = match_sigma(sig_j, rr_j, model_j)
         pts_j[~ok_j] = np.nan

@@ -37,15 +37,33 @@ def test_model_error_of_a_quadratic_parallax_is_the_subset_centre_bias():
         assert np.median(m[inner]) == pytest.approx(bias, rel=0.15), step
 
 
+def _subset_noise(xy, sigma, h, seed):
+    """Errors of (2h+1)² subsets at xy: a box-filtered white field, correlated as the
+    subsets overlap, of standard deviation sigma."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    f = ndimage.uniform_filter(rng.normal(0, 1, (200, 200)), 2 * h + 1, mode="wrap")
+    f *= sigma / f.std()
+    ij = np.rint(xy).astype(int)
+    return f[ij[:, 1], ij[:, 0]]
+
+
 def test_model_error_of_a_plane_is_only_noise():
-    rng = np.random.default_rng(0)
     xy = _grid(8, 16)
     sig = np.full(len(xy), 0.05)
+    for seed in range(3):
+        par = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + _subset_noise(xy, 0.05, 10, seed)
+        m = parallax_model_error(xy, par, sig, 10)
+        # the (correlated) noise is removed, not counted as model error
+        assert np.median(m) < 0.01 and np.mean(m) < 0.015, seed
+    # independent noise of the same σ is not absorbed by the local planes: it would count
+    rng = np.random.default_rng(0)
     par = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + rng.normal(0, 0.05, len(xy))
-    m = parallax_model_error(xy, par, sig, 10)
-    assert np.median(m) < 0.02           # the noise is removed, not counted as model error
+    assert np.median(parallax_model_error(xy, par, sig, 10)) > 0.02
     # a step through the field is model error where the neighbourhood straddles it
-    step = par + 0.5 * (xy[:, 0] > xy[:, 0].mean())
+    step = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + _subset_noise(xy, 0.05, 10, 9) \
+        + 0.5 * (xy[:, 0] > xy[:, 0].mean())
     ms = parallax_model_error(xy, step, sig, 10)
     near = np.abs(xy[:, 0] - xy[:, 0].mean()) < 8
     assert np.median(ms[near]) > 0.1 and np.median(ms[~near & (np.abs(xy[:, 0] - xy[:, 0].mean()) > 30)]) < 0.02
@@ -76,8 +94,8 @@ def test_model_error_at_clicks_off_the_grid():
     c = xy.mean(0)
     par = 0.5 * kappa * np.sum((xy - c) ** 2, 1)
     q = c + np.array([[3.3, -4.1], [-2.5, 6.2], [0.0, 0.0]])
-    m = model_error_at(q, xy, par, np.zeros(len(xy)), h)
+    m = model_error_at(q, xy, par, np.zeros(len(xy)), h, 5)
     assert np.allclose(m, kappa * h * (h + 1) / 3, rtol=0.2)
-    flat = model_error_at(q, xy, 0.01 * xy[:, 0], np.full(len(xy), 0.05), h)
+    flat = model_error_at(q, xy, 0.01 * xy[:, 0], np.full(len(xy), 0.05), h, 5)
     assert np.all(flat == 0)
-    assert np.all(np.isnan(model_error_at(q, xy[:5], par[:5], np.zeros(5), h)))
+    assert np.all(np.isnan(model_error_at(q, xy[:5], par[:5], np.zeros(5), h, 5)))
