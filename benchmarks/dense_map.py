@@ -13,9 +13,15 @@ choice, not an error of the matching). Reported: measured fraction of the interi
 semlab on its measured pixels, DeepFlow's RMSE on the same pixels, their ratio (target
 <= 0.8), and the share of pixels within 1σ / 2σ of the truth (target 60-75 % within 1σ).
 
+The variational map (:mod:`semlab.variational`, ``heightmap_from_stereo(params=
+VariationalParams())``) is computed in the same run and compared with DeepFlow on *its*
+measured pixels (columns "variational", "DeepFlow (same pixels)", their ratio, 1σ / 2σ).
+
 Run:  python benchmarks/dense_map.py [--quick]     (about 2 minutes per scene on 2 cores)
       python benchmarks/dense_map.py --low-texture   (polished / real texture, larger subsets
                                                      and the smoothing prior; ~7 min per scene)
+      python benchmarks/dense_map.py --no-subset     (variational and DeepFlow only; ~1 min
+                                                     per scene)
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semlab import experiment, heightmap, pipeline, synth
+from semlab import experiment, heightmap, pipeline, synth, variational
 from semlab.matching import _norm8
 
 BORDER = 20
@@ -44,6 +50,7 @@ def scenes(quick):
     real = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_sem"
     if real.exists():
         out.append(("real FEI texture ±5° seed 0", dict(seed=0, source="fei")))
+        out.append(("real quartz texture ±5° seed 0", dict(seed=0, source="quartz")))
     return out[:1] if quick else out
 
 
@@ -74,7 +81,20 @@ def deepflow_heights(views, model):
     return model.height(xx + flow[..., 0], yy + flow[..., 1], xx, yy)
 
 
-def run_scene(name, kw, tmp, params=None):
+def _compare(z, sigma, valid, zd, truth, interior):
+    """RMSE of a map and of DeepFlow on the map's measured interior pixels, σ coverage."""
+    m = interior & valid
+    e = plane_free(z.astype(float) - truth, m)
+    e_deep = plane_free(zd - truth, m)
+    sig = sigma[m].astype(float)
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
+    return dict(measured=float(m.sum() / interior.sum()), ours_nm=1e3 * rms(e),
+                deep_nm=1e3 * rms(e_deep), ratio=rms(e) / rms(e_deep),
+                in1=float(np.mean(np.abs(e) < sig)), in2=float(np.mean(np.abs(e) < 2 * sig)),
+                median_sigma_nm=1e3 * float(np.median(sig)))
+
+
+def run_scene(name, kw, tmp, params=None, subset=True):
     folder = Path(tmp) / name.split()[0] / str(abs(hash(name)))
     make(folder, kw)
     exp = experiment.load(folder)
@@ -84,26 +104,25 @@ def run_scene(name, kw, tmp, params=None):
         warnings.simplefilter("ignore")      # clicks that fail refinement are reported there
         st = pipeline.run_stereo(exp, n_boot=0, progress=False)
     t_sparse = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    hm = heightmap.heightmap_from_stereo(exp, st, params=params)
-    t_dense = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    zd = deepflow_heights(exp.views(), hm.model)
-    t_deep = time.perf_counter() - t0
     interior = np.zeros(truth.shape, bool)
     interior[BORDER:-BORDER, BORDER:-BORDER] = True
-    m = interior & hm.valid
-    e_ours = plane_free(hm.z_um.astype(float) - truth, m)
-    e_deep = plane_free(zd - truth, m)
-    e_deep_all = plane_free(zd - truth, interior & np.isfinite(zd))
-    sig = hm.sigma_um[m].astype(float)
-    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
-    return dict(scene=name, measured=float(m.sum() / interior.sum()), ours_nm=1e3 * rms(e_ours),
-                deep_nm=1e3 * rms(e_deep), deep_all_nm=1e3 * rms(e_deep_all),
-                ratio=rms(e_ours) / rms(e_deep), in1=float(np.mean(np.abs(e_ours) < sig)),
-                in2=float(np.mean(np.abs(e_ours) < 2 * sig)), sigma_scale=hm.parallax.sigma_scale,
-                n_sparse=len(st.pts), t_sparse=t_sparse, t_dense=t_dense, t_deep=t_deep,
-                median_sigma_nm=1e3 * float(np.median(sig)))
+    out = dict(scene=name, n_sparse=len(st.pts), t_sparse=t_sparse)
+    t0 = time.perf_counter()
+    hv = heightmap.heightmap_from_stereo(exp, st, params=variational.VariationalParams())
+    out["t_var"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    zd = deepflow_heights(exp.views(), hv.model)
+    out["t_deep"] = time.perf_counter() - t0
+    out["deep_all_nm"] = 1e3 * float(np.sqrt(np.mean(
+        plane_free(zd - truth, interior & np.isfinite(zd)) ** 2)))
+    out["var"] = _compare(hv.z_um, hv.sigma_um, hv.valid, zd, truth, interior)
+    if subset:
+        t0 = time.perf_counter()
+        hm = heightmap.heightmap_from_stereo(exp, st, params=params)
+        out["t_dense"] = time.perf_counter() - t0
+        out.update(_compare(hm.z_um, hm.sigma_um, hm.valid, zd, truth, interior))
+        out["sigma_scale"] = hm.parallax.sigma_scale
+    return out
 
 
 def main(argv=None):
@@ -112,6 +131,8 @@ def main(argv=None):
     ap.add_argument("--low-texture", action="store_true",
                     help="only the low-texture scenes (polished, real FEI), with 25x25 subsets, "
                          "min_zncc 0.3 and the smoothing prior (radius 12 px)")
+    ap.add_argument("--no-subset", action="store_true",
+                    help="skip the subset map (variational and DeepFlow only)")
     args = ap.parse_args(argv)
     rows = []
     sc = scenes(args.quick)
@@ -120,22 +141,38 @@ def main(argv=None):
         sc = [s for s in sc if "speckle" not in s[0]]
         params = heightmap.DenseParams(half_window=12, min_zncc=0.3, smooth_radius_px=12)
         print(f"params: {params}")
+    subset = not args.no_subset
     with tempfile.TemporaryDirectory() as tmp:
         for name, kw in sc:
-            r = run_scene(name, kw, tmp, params)
+            r = run_scene(name, kw, tmp, params, subset)
             rows.append(r)
-            print(f"{name}: measured {100 * r['measured']:.1f} %, semlab {r['ours_nm']:.1f} nm, "
-                  f"DeepFlow {r['deep_nm']:.1f} nm (ratio {r['ratio']:.2f}), within 1σ "
-                  f"{100 * r['in1']:.0f} %, 2σ {100 * r['in2']:.0f} %, σ scale "
-                  f"{r['sigma_scale']:.2f}, times {r['t_sparse']:.0f}/{r['t_dense']:.0f}/"
-                  f"{r['t_deep']:.0f} s", flush=True)
-    print("\n| scene | measured interior | semlab RMSE | DeepFlow RMSE (same pixels) | ratio "
-          "| within 1σ / 2σ | dense time |")
+            v = r["var"]
+            msg = (f"{name}: variational {v['ours_nm']:.1f} nm vs DeepFlow {v['deep_nm']:.1f} nm "
+                   f"(ratio {v['ratio']:.2f}, measured {100 * v['measured']:.1f} %, 1σ/2σ "
+                   f"{100 * v['in1']:.0f}/{100 * v['in2']:.0f} %, {r['t_var']:.0f} s)")
+            if subset:
+                msg += (f"; subset: measured {100 * r['measured']:.1f} %, {r['ours_nm']:.1f} nm, "
+                        f"DeepFlow {r['deep_nm']:.1f} nm (ratio {r['ratio']:.2f}), within 1σ "
+                        f"{100 * r['in1']:.0f} %, 2σ {100 * r['in2']:.0f} %, σ scale "
+                        f"{r['sigma_scale']:.2f}, times {r['t_sparse']:.0f}/{r['t_dense']:.0f}/"
+                        f"{r['t_deep']:.0f} s")
+            print(msg, flush=True)
+    if subset:
+        print("\n| scene | measured interior | semlab RMSE | DeepFlow RMSE (same pixels) | ratio "
+              "| within 1σ / 2σ | dense time |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['scene']} | {100 * r['measured']:.1f} % | {r['ours_nm']:.1f} nm | "
+                  f"{r['deep_nm']:.1f} nm | {r['ratio']:.2f} | {100 * r['in1']:.0f} / "
+                  f"{100 * r['in2']:.0f} % | {r['t_dense']:.0f} s |")
+    print("\n| scene | measured interior | variational RMSE | DeepFlow RMSE (same pixels) | ratio "
+          "| within 1σ / 2σ | time |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['scene']} | {100 * r['measured']:.1f} % | {r['ours_nm']:.1f} nm | "
-              f"{r['deep_nm']:.1f} nm | {r['ratio']:.2f} | {100 * r['in1']:.0f} / "
-              f"{100 * r['in2']:.0f} % | {r['t_dense']:.0f} s |")
+        v = r["var"]
+        print(f"| {r['scene']} | {100 * v['measured']:.1f} % | {v['ours_nm']:.1f} nm | "
+              f"{v['deep_nm']:.1f} nm | {v['ratio']:.2f} | {100 * v['in1']:.0f} / "
+              f"{100 * v['in2']:.0f} % | {r['t_var']:.0f} s |")
     return rows
 
 

@@ -99,7 +99,7 @@ class VariationalParams:
     warps: int = 5
     irls: int = 2
     norm_sigma_px: float = 5.0
-    grad_sigma_px: float = 1.0
+    grad_sigma_px: float = 0.5
     data_huber: float = 2.0
     smooth_huber: float = 0.1
     n_samples: int = 12
