@@ -80,6 +80,10 @@ class AnalysisConfig:
         Map only this half-open window of view-0 pixels (None: the whole view). Views of
         more than ``semlab.tiled_stereo.DEFAULT_TILING.min_pixels`` pixels are mapped in
         tiles either way.
+    heightmap_method : {"subset", "variational"}
+        The dense map's parallax: an IC-GN subset at every pixel (default) or the
+        variational refinement (:mod:`semlab.variational`: better on weak texture, see the
+        README's dense-map table).
     """
 
     stereo_method: str | None = None
@@ -89,6 +93,7 @@ class AnalysisConfig:
     gauge_length_px: float | None = None
     heightmap: bool = True
     heightmap_roi: tuple | None = None
+    heightmap_method: str = "subset"
 
     def __post_init__(self):
         if self.heightmap_roi is not None:
@@ -109,6 +114,9 @@ class AnalysisConfig:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
         if int(self.n_boot) != self.n_boot or self.n_boot < 0:
             raise SemlabError(f"n_boot = {self.n_boot!r}: give a whole number >= 0")
+        if self.heightmap_method not in ("subset", "variational"):
+            raise SemlabError(f"heightmap_method = {self.heightmap_method!r}: use 'subset' or "
+                              "'variational'")
         if not isinstance(self.heightmap, bool):
             raise SemlabError(f"heightmap = {self.heightmap!r}: give true or false")
         if self.gauge_length_px is not None and not self.gauge_length_px > 0:
@@ -140,10 +148,10 @@ class AnalysisConfig:
 
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
-        own = {"stereo": ("stereo_method", "n_boot", "seed"), "heightmap": ("heightmap_roi",),
-               "tracking": ("track_method",),
+        own = {"stereo": ("stereo_method", "n_boot", "seed"),
+               "heightmap": ("heightmap_roi", "heightmap_method"), "tracking": ("track_method",),
                "strain": ("gauge_length_px",)}
-        needs = {"stereo": ("stereo",), "heightmap": ("stereo",),
+        needs = {"stereo": ("stereo",), "heightmap": ("stereo", "heightmap"),
                  "tracking": ("stereo", "tracking"),
                  "strain": ("stereo", "tracking", "strain")}
         return {k: getattr(self, k) for s in needs[step] for k in own[s]}
@@ -488,7 +496,13 @@ class Analysis:
         def compute():
             res = self.stereo()
             try:
-                hm = heightmap.heightmap_from_stereo(exp, res, progress=self.progress,
+                params = None
+                if self.config.heightmap_method == "variational":
+                    from .variational import VariationalParams
+
+                    params = VariationalParams()
+                hm = heightmap.heightmap_from_stereo(exp, res, params=params,
+                                                     progress=self.progress,
                                                      roi=self.config.heightmap_roi)
             except SemlabError as exc:
                 if "roi must be" not in str(exc):

@@ -145,3 +145,13 @@ def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo():
     assert any("variational" in n for n in res.notes)
     assert res.metadata()["params"]["prior_window_px"] == 15
     np.testing.assert_allclose(res.parallax.x1_px[inner], p.x1_px[inner], atol=0.05)
+
+
+def test_analysis_config_selects_the_method():
+    import semlab
+
+    cfg = semlab.AnalysisConfig(heightmap_method="variational")
+    assert cfg.for_step("heightmap")["heightmap_method"] == "variational"
+    assert semlab.AnalysisConfig().heightmap_method == "subset"
+    with pytest.raises(SemlabError, match="heightmap_method"):
+        semlab.AnalysisConfig(heightmap_method="deepflow")
