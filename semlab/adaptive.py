@@ -18,6 +18,16 @@ function is chosen by what the information supports:
   affine. (Comparing the two residuals instead, within the chi-square scatter of one
   residual variance, let held gradients 0.02–0.04 off pass and doubled the error.)
 
+With ``curvature_neighbours`` the sizing also accounts for the displacement's curvature
+(:func:`_total_error_select`): with an affine shape function a curved displacement biases
+the matched centre by ``∇²u · h (h + 1) / 6`` (the mean of the quadratic term over the
+subset), which grows with the subset while the noise falls. Every size of the ladder is
+matched, the bias coefficient of each point is estimated from how its estimates move with
+the size (weighted least squares of ``u_h`` on ``h (h + 1) / 6``), averaged over its
+nearest neighbours and de-biased by its variance, and the subset chosen is the smallest
+whose predicted total error ``√(σ_h² + b_h²)`` reaches the target, else the one with the
+smallest total error.
+
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
 counts as reaching the target. Points that do not reach the target with the largest
@@ -60,6 +70,10 @@ class AdaptiveResult:
         True where ``max(sigma_px) <= target_sigma_px``.
     target_sigma_px : float
         The target.
+    bias_px : (N,) float array or None
+        With ``curvature_neighbours``: the predicted curvature bias of the chosen match
+        (the larger of x and y), pixels; the predicted total error is
+        ``√(sigma² + bias²)``. None otherwise.
     """
 
     subset: SubsetResult
@@ -67,6 +81,7 @@ class AdaptiveResult:
     shape_function: np.ndarray
     target_met: np.ndarray
     target_sigma_px: float
+    bias_px: np.ndarray = None
 
     def __len__(self):
         return len(self.half_window)
@@ -80,7 +95,7 @@ class AdaptiveResult:
 def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
                   half_windows=(7, 10, 14, 20, 28), warp="auto", init_warp=None, *,
                   smooth_sigma_px=0.0, noise_sigma=None, max_iter=30, tol_px=1e-4,
-                  ref_prefiltered=None, cur_prefiltered=None):
+                  ref_prefiltered=None, cur_prefiltered=None, curvature_neighbours=None):
     """IC-GN matching with per-point subset size and shape function chosen by information.
 
     Parameters
@@ -100,6 +115,11 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
         Starting (and, for translation, held) gradient terms, as in ``icgn_refine``.
     smooth_sigma_px, noise_sigma, max_iter, tol_px, ref_prefiltered, cur_prefiltered
         As in :func:`semlab.subset.icgn_refine`.
+    curvature_neighbours : int or None
+        Size by the predicted total error, noise and curvature bias (module docstring),
+        the bias coefficient averaged over this many nearest points (itself included; 1:
+        each point alone). Needs a single shape function (``"auto"`` means affine here).
+        None: by the noise alone.
 
     Returns
     -------
@@ -128,6 +148,14 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
         np.asarray(init_warp, float), (n, 6)).copy()
     kw = dict(smooth_sigma_px=smooth_sigma_px, noise_sigma=noise_sigma, max_iter=max_iter,
               tol_px=tol_px, ref_prefiltered=rc, cur_prefiltered=cc)
+    if curvature_neighbours is not None:
+        k_nb = int(curvature_neighbours)
+        if k_nb < 1:
+            raise SemlabError(f"curvature_neighbours must be None or >= 1, got "
+                              f"{curvature_neighbours!r}")
+        return _total_error_select(ref, cur, pr, pg, float(target_sigma_px), hs,
+                                   "translation" if warp == "translation" else "affine",
+                                   iw, kw, k_nb, noise_sigma)
 
     best = _empty(n, noise_sigma)     # best result so far of every point
     best_sig = np.full(n, np.inf)
@@ -214,6 +242,89 @@ def _gradient_holds(ra, rt):
         ok = d2 <= 2 * np.maximum(dv, 0)
         bias2 = np.where(np.isfinite(d2) & np.isfinite(dv), np.maximum(d2 - dv, 0), 0.0)
     return ~ra.converged | (~np.isfinite(dv) & np.isfinite(d2)) | ok, bias2
+
+
+def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_sigma):
+    """:func:`adaptive_icgn` sized by the predicted total error (noise and curvature bias).
+
+    Stages: every size matched (each started from the previous size's match); the bias
+    coefficient β of ``u_h ≈ u + β c_h``, ``c_h = h (h + 1) / 6``, per point and component by
+    least squares weighted by ``1 / σ_h²``; its variance from the nested smallest and largest
+    subsets, ``(σ_first² − σ_last²) / (c_last − c_first)²``; both averaged over the
+    ``k_nb`` nearest points; ``b_h² = max(β² − var β, 0) c_h²``; the choice.
+    """
+    from scipy.spatial import cKDTree
+
+    n, nh = len(pr), len(hs)
+    c = np.array([h * (h + 1) / 6.0 for h in hs])
+    runs = []
+    guess = pg.copy()
+    for h in hs:
+        r = icgn_refine(ref, cur, pr, guess, half_window=h, warp=warp, init_warp=iw, **kw)
+        runs.append(r)
+        good = np.isfinite(r.pts[:, 0])
+        guess[good] = r.pts[good]
+    U = np.stack([r.pts for r in runs])                          # (H, N, 2)
+    S = np.stack([np.asarray(r.sigma_px, float) for r in runs])  # (H, N, 2)
+    fin = np.stack([r.converged for r in runs])[..., None] & np.isfinite(U) \
+        & np.isfinite(S) & (S > 0)
+    w = np.where(fin, 1.0 / np.where(fin, S, 1.0) ** 2, 0.0)
+    Uz = np.where(fin, U, 0.0)
+    cc = c[:, None, None]
+    sw, swc, swcc = w.sum(0), (w * cc).sum(0), (w * cc ** 2).sum(0)
+    swu, swcu = (w * Uz).sum(0), (w * cc * Uz).sum(0)
+    det = sw * swcc - swc ** 2
+    two = fin.sum(0) >= 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        beta = np.where(two & (det > 0), (sw * swcu - swc * swu) / np.where(det > 0, det, 1),
+                        np.nan)
+        first = np.argmax(fin, axis=0)                           # smallest converged size
+        last = nh - 1 - np.argmax(fin[::-1], axis=0)             # largest converged size
+        s_f = np.take_along_axis(S, first[None], 0)[0]
+        s_l = np.take_along_axis(S, last[None], 0)[0]
+        dc = c[last] - c[first]
+        var_b = np.where(two & (dc > 0), np.abs(s_f ** 2 - s_l ** 2)
+                         / np.where(dc > 0, dc, 1) ** 2, np.nan)
+    kk = min(k_nb, n)
+    if kk > 1:
+        _, nb = cKDTree(pr).query(pr, k=kk)
+        nb = nb.reshape(n, kk)
+        cnt = np.isfinite(beta[nb]).sum(1)                        # (N, 2)
+        beta = _nanmean(beta[nb], axis=1)
+        var_b = _nanmean(var_b[nb], axis=1) / np.maximum(cnt, 1)
+    b2 = np.where(np.isfinite(beta) & np.isfinite(var_b),
+                  np.maximum(beta ** 2 - var_b, 0.0), 0.0)       # (N, 2)
+    bias = np.sqrt(b2[None] * cc ** 2)                            # (H, N, 2)
+    tot = np.where(fin, np.sqrt(S ** 2 + bias ** 2), np.inf).max(-1)   # (H, N)
+    ok = tot <= target
+    conv = np.isfinite(tot).any(0)
+    choice = np.where(ok.any(0), np.argmax(ok, 0), np.argmin(tot, 0))
+    best = _empty(n, noise_sigma)
+    for k in range(nh):
+        rows = np.flatnonzero(conv & (choice == k))
+        if len(rows):
+            best = _assign(best, rows, runs[k], rows)
+    idx = np.arange(n)
+    met = conv & ok[choice, idx]
+    t_ch = tot[choice, idx]
+    reason = np.array(best.reason, dtype=object)
+    for i in np.flatnonzero(conv & ~met):
+        reason[i] = (f"{TARGET_MISSED} (total error {t_ch[i]:.3f} px: sigma and curvature "
+                     f"bias, at h={hs[choice[i]]})")
+    if n:
+        best = replace(best, reason=reason.astype(str))
+    hw = np.where(conv, np.asarray(hs)[choice], 0)
+    b_ch = np.where(conv, bias[choice, idx].max(-1), np.nan)
+    return AdaptiveResult(subset=best, half_window=hw,
+                          shape_function=np.where(conv, warp, "").astype(str),
+                          target_met=met, target_sigma_px=target, bias_px=b_ch)
+
+
+def _nanmean(a, axis):
+    """Mean along ``axis`` ignoring NaN; NaN where all are NaN (no warning)."""
+    f = np.isfinite(a)
+    cnt = f.sum(axis)
+    return np.where(cnt > 0, np.where(f, a, 0.0).sum(axis) / np.maximum(cnt, 1), np.nan)
 
 
 def _empty(n, noise_sigma):
