@@ -296,9 +296,17 @@ def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_
                   np.maximum(beta ** 2 - var_b, 0.0), 0.0)       # (N, 2)
     bias = np.sqrt(b2[None] * cc ** 2)                            # (H, N, 2)
     tot = np.where(fin, np.sqrt(S ** 2 + bias ** 2), np.inf).max(-1)   # (H, N)
-    ok = tot <= target
+    # a subset whose residual exceeds the noise by more than the chi-square scatter does
+    # not fit an affine map even with the bias (a step, a crack): chosen only when no
+    # size fits, then the smallest converged one (its misfit is the least)
+    scatter = np.array([3 * np.sqrt(2.0 / max((2 * h + 1) ** 2 - 6, 1)) for h in hs])
+    fits = np.stack([r.residual_ratio for r in runs]) <= 1 + scatter[:, None]
+    tot_fit = np.where(fits, tot, np.inf)
+    ok = tot_fit <= target
     conv = np.isfinite(tot).any(0)
-    choice = np.where(ok.any(0), np.argmax(ok, 0), np.argmin(tot, 0))
+    any_fit = np.isfinite(tot_fit).any(0)
+    choice = np.where(ok.any(0), np.argmax(ok, 0),
+                      np.where(any_fit, np.argmin(tot_fit, 0), np.argmax(np.isfinite(tot), 0)))
     best = _empty(n, noise_sigma)
     for k in range(nh):
         rows = np.flatnonzero(conv & (choice == k))
@@ -310,7 +318,9 @@ def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_
     reason = np.array(best.reason, dtype=object)
     for i in np.flatnonzero(conv & ~met):
         reason[i] = (f"{TARGET_MISSED} (total error {t_ch[i]:.3f} px: sigma and curvature "
-                     f"bias, at h={hs[choice[i]]})")
+                     f"bias, at h={hs[choice[i]]}" + (")" if any_fit[i] else
+                                                      "; its residual exceeds the noise "
+                                                      "at every size: shape misfit)"))
     if n:
         best = replace(best, reason=reason.astype(str))
     hw = np.where(conv, np.asarray(hs)[choice], 0)
