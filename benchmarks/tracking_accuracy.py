@@ -177,13 +177,14 @@ def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
         st = shi_tomasi_seeds(frames[-1])
         ref_err = {name: np.linalg.norm(q - true, axis=2)
                    for name, q in reference_tracks(frames, seeds).items()}
-        for method in ("lk", "subset"):
+        for method, kw in (("lk", {}), ("subset", {}), ("subset", {"target_sigma_px": 0.02})):
             t0 = time.perf_counter()
-            tr = track_reverse(frames, seeds, method=method, progress=False)
+            tr = track_reverse(frames, seeds, method=method, progress=False, **kw)
             dt = time.perf_counter() - t0
             err = np.linalg.norm(tr.xy - true, axis=2)
             v0 = tr.valid[0]
-            rows.append((f"(d) synth series seed {scene_seed} ({F} frames {w}x{h}), {method}",
+            label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20)" if kw else "")
+            rows.append((f"(d) synth series seed {scene_seed} ({F} frames {w}x{h}), {label}",
                          len(seeds),
                          f"{tr.valid[:-1].mean():.3f} (frame 0: {v0.mean():.3f})", "-",
                          f"{np.sqrt(np.mean(err[0][v0] ** 2)):.3f}" if v0.any() else "-",
@@ -200,9 +201,9 @@ def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
                          + " (ratio to the best "
                          f"{rms(err[:-1], tr.valid[:-1]) / min(rms(e[:-1], tr.valid[:-1]) for e in ref_err.values()):.2f})"))
             t0 = time.perf_counter()
-            track_reverse(frames, st, method=method, progress=False)
+            track_reverse(frames, st, method=method, progress=False, **kw)
             dt = time.perf_counter() - t0
-            speed.append((f"synth seed {scene_seed} {w}x{h}, Shi-Tomasi seeds, {method}",
+            speed.append((f"synth seed {scene_seed} {w}x{h}, Shi-Tomasi seeds, {label}",
                           len(st), F - 1, dt,
                           len(st) * (F - 1) / dt))
         for name, e in ref_err.items():
