@@ -16,6 +16,9 @@ Cases:
   256 px tiles) over a central ``--dense-roi`` square of the pair (the whole 12.6 Mpx map
   takes too long for a benchmark; a tile's memory does not depend on the image size).
 
+- ``match_tiled`` / ``match_untiled``: :func:`semlab.tiled_stereo.tiled_auto_match` /
+  :func:`semlab.matching.auto_match` (defaults: 8 px grid) of the ``--run`` experiment's
+  two views (read as uint16);
 - ``--run``: a synthetic 3072×4096 experiment (±5° pair of a slip-banded surface, written
   as 16-bit TIFFs by :func:`write_experiment`) through ``semlab run --only 04`` (the stereo
   step, automatic matching in tiles, and the heightmap step, tiled, over ``--map-roi``; the
@@ -48,7 +51,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CASES = ("icgn_tiled", "icgn_untiled", "track_tiled", "track_untiled", "dense_tiled")
+CASES = ("icgn_tiled", "icgn_untiled", "track_tiled", "track_untiled", "dense_tiled",
+         "match_tiled", "match_untiled")
 
 
 def texture(shape, seed):
@@ -256,7 +260,27 @@ def run_case(case, size, spacing, n_frames, dense_roi=512):
     info = {"case": case, "size": f"{h}x{w}"}
     with PeakSampler() as peak:
         t0 = time.perf_counter()
-        if case == "dense_tiled":
+        if case.startswith("match"):
+            # the --run experiment's views: tiled_auto_match (12 tiles) / one auto_match
+            import tempfile
+
+            import tifffile
+
+            from semlab.matching import auto_match
+            from semlab.tiled_stereo import tiled_auto_match
+
+            del base
+            tmp = Path(tempfile.mkdtemp(prefix="semlab_memory_match_"))
+            write_experiment(tmp, (h, w))
+            views = [tifffile.imread(tmp / f"end_state/view_{k}.tif") for k in range(2)]
+            t0 = time.perf_counter()
+            fn = tiled_auto_match if case == "match_tiled" else auto_match
+            m = fn(views, progress=True)
+            info.update(points=len(m.pts), converged=int(m.valid.sum()))
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
+        elif case == "dense_tiled":
             par = parallax((h, w), 4.0)
             view1 = warped(base, par, np.float32(0), 2.0, 1)
             c = dense_roi
