@@ -256,30 +256,30 @@ def run_case(case, size, spacing, n_frames, dense_roi=512):
     from semlab.tracking import shi_tomasi_seeds, track_reverse
 
     h, w = size
-    base = texture((h, w), 0)
     info = {"case": case, "size": f"{h}x{w}"}
+    if case.startswith("match"):
+        # the --run experiment's views, written and read back before the sampling starts
+        import shutil
+        import tempfile
+
+        import tifffile
+
+        tmp = Path(tempfile.mkdtemp(prefix="semlab_memory_match_"))
+        write_experiment(tmp, (h, w))
+        views = [tifffile.imread(tmp / f"end_state/view_{k}.tif") for k in range(2)]
+        shutil.rmtree(tmp, ignore_errors=True)
+    else:
+        base = texture((h, w), 0)
     with PeakSampler() as peak:
         t0 = time.perf_counter()
         if case.startswith("match"):
-            # the --run experiment's views: tiled_auto_match (12 tiles) / one auto_match
-            import tempfile
-
-            import tifffile
-
+            # tiled_auto_match (12 tiles at 3072×4096) / one auto_match
             from semlab.matching import auto_match
             from semlab.tiled_stereo import tiled_auto_match
 
-            del base
-            tmp = Path(tempfile.mkdtemp(prefix="semlab_memory_match_"))
-            write_experiment(tmp, (h, w))
-            views = [tifffile.imread(tmp / f"end_state/view_{k}.tif") for k in range(2)]
-            t0 = time.perf_counter()
             fn = tiled_auto_match if case == "match_tiled" else auto_match
             m = fn(views, progress=True)
             info.update(points=len(m.pts), converged=int(m.valid.sum()))
-            import shutil
-
-            shutil.rmtree(tmp, ignore_errors=True)
         elif case == "dense_tiled":
             par = parallax((h, w), 4.0)
             view1 = warped(base, par, np.float32(0), 2.0, 1)
