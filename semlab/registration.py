@@ -270,7 +270,8 @@ def rigid_region_mask(shape, p0, residual_px, threshold_px, radius_px=12.0):
 # ----------------------------------------------------------------------------- pairs, series
 
 def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0, min_inliers=10,
-                  ecc=True, init=None, features=None, n_max=5000, rigid_threshold_px=0.3):
+                  ecc=True, init=None, features=None, n_max=5000, rigid_threshold_px=0.3,
+                  rigid_iterations=2):
     """Global transform from ``ref`` pixels to ``img`` pixels: features, RANSAC, then ECC,
     measured on the part of the image that moves rigidly.
 
@@ -287,9 +288,11 @@ def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0,
        features' own localisation error): the largest set that moves as one;
     3. refined by intensity (:func:`refine_ecc`) on that set's region only
        (:func:`rigid_region_mask`), the refinement kept only when it stays within
-       ``max(0.2, 3 σ)`` px of the feature estimate everywhere in the image, ``σ`` its
-       predicted error (``2 × residual / √n_inliers``): ECC can lock onto a wrong optimum
-       when the contrast differs between the images, the features do not.
+       ``max(0.2, 3 σ, ransac_threshold_px / 2)`` px of the feature estimate everywhere in
+       the image, ``σ`` its predicted error (``2 × residual / √n_inliers``): ECC can lock onto a wrong optimum
+       when the contrast differs between the images, the features do not;
+    4. ``rigid_iterations`` times: the inliers and their region selected again under the
+       ECC transform (finer than the features' own estimate), and ECC again.
 
     Parameters
     ----------
@@ -306,6 +309,8 @@ def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0,
         Precomputed :func:`detect_features` of ``ref`` and ``img``.
     n_max : int
         SIFT keypoints per image.
+    rigid_iterations : int
+        Re-selections of the rigid region from the ECC estimate (stage 4.).
     rigid_threshold_px : float or None
         Inlier threshold of the rigid-region stage (2.), pixels; kept only when it leaves
         ``min_inliers``. None: one RANSAC at ``ransac_threshold_px`` and ECC on the whole
@@ -356,14 +361,27 @@ def register_pair(ref, img, model="affine", ratio=0.75, ransac_threshold_px=2.0,
         T, method, tol = init, "chained", 3.0
     rho = np.nan
     frac = np.nan
-    if ecc:
+    T_feat = T
+    for it in range(1 + (int(rigid_iterations) if ecc and mask is not None else 0)):
+        if not ecc:
+            break
         try:
             Te, rho_e = refine_ecc(ref, img, T, model, mask=mask)
-            if Te.distance(T, np.shape(ref)) <= tol:
-                T, method, rho = Te, method + "+ecc", rho_e
-                frac = 1.0 if mask is None else float(mask.mean())
         except GeometryError:
-            pass
+            break
+        if Te.distance(T_feat, np.shape(ref)) > tol:
+            break
+        T, rho = Te, rho_e
+        method = method if method.endswith("+ecc") else method + "+ecc"
+        frac = 1.0 if mask is None else float(mask.mean())
+        if mask is None or it == int(rigid_iterations):
+            break
+        # the region again, from the intensity estimate (finer than the features' own)
+        r = np.linalg.norm(T(q0) - q1, axis=1)
+        if (r <= thr).sum() < min_inliers:
+            break
+        p0, p1 = q0[r <= thr], q1[r <= thr]
+        mask = rigid_region_mask(np.shape(ref), q0, r, thr)
     res = float(np.sqrt(np.mean(np.sum((T(p0) - p1) ** 2, axis=1)))) if len(p0) else np.nan
     return {"transform": T, "residual_px": res, "n_inliers": int(len(p0)), "ecc": float(rho),
             "method": method, "region_fraction": frac}
@@ -464,7 +482,7 @@ class Registration:
 
 def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.75,
                     ransac_threshold_px=2.0, min_inliers=10, n_max=5000, progress=False,
-                    rigid_threshold_px=0.3):
+                    rigid_threshold_px=0.3, rigid_iterations=2):
     """Register every frame of a series to its neighbour and to the reference frame.
 
     For each frame ``k`` (from the reference backwards, then forwards):
@@ -489,7 +507,7 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
         Index of the reference frame (default the last, the tracking reference).
     ecc : bool
         Refine each transform by intensity.
-    ratio, ransac_threshold_px, min_inliers, n_max, rigid_threshold_px
+    ratio, ransac_threshold_px, min_inliers, n_max, rigid_threshold_px, rigid_iterations
         See :func:`register_pair`: each transform is that of the largest rigidly moving
         region (stage drift composed with that region's own motion), found by RANSAC at
         ``rigid_threshold_px`` and ECC on that region.
@@ -538,7 +556,8 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
         return feats[i]
 
     kw = dict(model=model, ratio=ratio, ransac_threshold_px=ransac_threshold_px,
-              min_inliers=min_inliers, rigid_threshold_px=rigid_threshold_px)
+              min_inliers=min_inliers, rigid_threshold_px=rigid_threshold_px,
+              rigid_iterations=rigid_iterations)
     for k in order:
         nb = k + 1 if k < ref else k - 1
         if normalize_frame(frames[k])[1]:
@@ -562,7 +581,8 @@ def register_frames(frames, model="similarity", reference=-1, ecc=True, ratio=0.
                         method=meth.astype(str), model=model, reference=ref, shape=shape,
                         params=dict(ecc=ecc, ratio=ratio, ransac_threshold_px=ransac_threshold_px,
                                     min_inliers=min_inliers, n_max=n_max,
-                                    rigid_threshold_px=rigid_threshold_px))
+                                    rigid_threshold_px=rigid_threshold_px,
+                                    rigid_iterations=rigid_iterations))
 
 
 def warp_to_reference(img, transform, shape=None, margin_px=0, order=3):
