@@ -127,7 +127,10 @@ def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, grid_half_w
 
     As :func:`model_error_from_fit`, from the local plane through the ``k`` grid points
     ``xy`` (finite ``parallax_px``) nearest to each query point, offsets taken from the
-    query point.
+    query point; and directly, where the query's subset holds more than ``k`` grid points,
+    as the grid's mean parallax over the subset minus the local plane's value at the centre
+    (noise removed): a subset much larger than the neighbourhood averages structure beyond
+    it. The larger of the two.
 
     Parameters
     ----------
@@ -152,7 +155,8 @@ def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, grid_half_w
     g, par = np.asarray(xy, float)[ok], np.asarray(parallax_px, float)[ok]
     s = np.asarray(sigma_px, float)[ok]
     s2 = np.where(np.isfinite(s), s, 0.0) ** 2
-    _, nb = cKDTree(g).query(q, k=k)
+    tree = cKDTree(g)
+    _, nb = tree.query(q, k=k)
     nb = np.asarray(nb).reshape(len(q), k)
     d = g[nb] - q[:, None, :]                                       # (Q, k, 2)
     X = np.concatenate([np.ones((len(q), k, 1)), d], axis=2)
@@ -166,7 +170,19 @@ def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, grid_half_w
     sd = np.std(d2, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         geom = np.where(sd > 0, 2 * h * (h + 1) / 3 / sd, 0.0)
-    return excess_over_noise(rms, noise) * geom
+    curv = excess_over_noise(rms, noise) * geom
+    # directly: the grid's mean parallax over the query's subset minus the local plane's
+    # value at its centre (a subset much larger than the local neighbourhood averages
+    # structure that no quadratic extrapolation of the neighbourhood holds)
+    direct = np.zeros(len(q))
+    for i, members in enumerate(tree.query_ball_point(q, r=h * np.sqrt(2.0), p=np.inf)):
+        members = [m for m in members if np.all(np.abs(g[m] - q[i]) <= h[i])]
+        if len(members) <= k:
+            continue
+        diff = float(np.mean(par[members])) - sol[i, 0]
+        noise_d2 = float(np.mean(s2[members])) / len(members) + float(np.mean(s2[nb[i]])) * 3 / k
+        direct[i] = np.sqrt(max(diff ** 2 - noise_d2, 0.0))
+    return np.maximum(curv, direct)
 
 
 def _fit_noise_rms(d, s_nb, noise_half_window, n_par=3):

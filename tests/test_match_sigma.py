@@ -99,3 +99,18 @@ def test_model_error_at_clicks_off_the_grid():
     flat = model_error_at(q, xy, 0.01 * xy[:, 0], np.full(len(xy), 0.05), h, 5)
     assert np.all(flat == 0)
     assert np.all(np.isnan(model_error_at(q, xy[:5], par[:5], np.zeros(5), h, 5)))
+
+
+def test_model_error_at_a_large_subset_sees_structure_beyond_the_neighbourhood():
+    """A step 15 px from a click: flat for the 12 nearest grid points (7 px apart), but a
+    57-px subset averages it in: the error is the step times the subset's share beyond it."""
+    xy = _grid(7, 20)
+    q = np.array([[80.0, 80.0]])
+    par = 0.5 * (xy[:, 0] > 95.0)
+    m = model_error_at(q, xy, par, np.full(len(xy), 1e-3), 28, 7)
+    inside = np.all(np.abs(xy - q) <= 28, 1)
+    share = np.mean(xy[inside, 0] > 95.0)
+    assert share > 0.15
+    assert m[0] == pytest.approx(0.5 * share, rel=0.1)
+    # a subset that does not reach the step: no model error
+    assert model_error_at(q, xy, par, np.full(len(xy), 1e-3), 10, 7)[0] < 1e-3
