@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .match_epipolar import epipolar_refine
 from .subset import icgn_refine
 
 
@@ -59,10 +60,13 @@ def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
 
 
 def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
-                       img_coef, ref_coef, max_iter, tol_px):
+                       img_coef, ref_coef, max_iter, tol_px, direction=None):
     """Distance (pixels) between ``pts_ref`` and the backward IC-GN match of ``pts`` (in
     ``img``) into ``ref_img``, started at ``pts_ref`` with the inverse of the forward warp
-    gradient (NaN where the backward match fails)."""
+    gradient (NaN where the backward match fails). With ``direction`` (the forward
+    epipolar direction ``e``) the backward match is along the epipolar direction only
+    (:func:`semlab.match_epipolar.epipolar_refine`, direction ``A⁻¹ e`` in the reference),
+    as the forward one was."""
     g = np.where(np.isfinite(warp), warp, 0.0)
     A = np.stack([np.stack([1 + g[:, 1], g[:, 2]], 1), np.stack([g[:, 4], 1 + g[:, 5]], 1)], 1)
     det = np.linalg.det(A)
@@ -70,6 +74,13 @@ def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sig
     B = np.linalg.inv(A) - np.eye(2)
     z = np.zeros(len(pts))
     init = np.column_stack([z, B[:, 0, 0], B[:, 0, 1], z, B[:, 1, 0], B[:, 1, 1]])
+    if direction is not None:
+
+        d = np.einsum("nij,j->ni", np.linalg.inv(A), np.asarray(direction, float))
+        r = epipolar_refine(img, ref_img, pts, pts_ref, d, half_window, init,
+                            max_iter=max_iter, tol_px=tol_px, smooth_sigma_px=smooth_sigma_px,
+                            ref_prefiltered=img_coef, cur_prefiltered=ref_coef)
+        return np.hypot(*(r.pts - pts_ref).T)
     r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
                     smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
                     cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)

@@ -151,7 +151,16 @@ def _flow_field(ref_img, img, M, half_window, eps):
     return warped, fwd, bwd
 
 
-def _aligned_noise(ref_img, warped, fwd, half_window):
+def _highpass(img, half_window):
+    """``img`` minus its Gaussian blur of σ = ``2 half_window`` (float32): the texture
+    without the smooth shading."""
+    import cv2
+
+    a = np.asarray(img, np.float32)
+    return a - cv2.GaussianBlur(a, (0, 0), 2.0 * half_window)
+
+
+def _aligned_noise(ref_img, warped, fwd, half_window, pts=None, tile_px=64):
     """Image noise σ (grey levels) from the difference of two aligned views.
 
     ``warped`` is resampled along the flow onto the reference; both are high-passed
@@ -160,6 +169,12 @@ def _aligned_noise(ref_img, warped, fwd, half_window):
     noise, so ``1.4826 MAD(difference) / √2`` estimates the noise of one view whatever its
     spectrum (e.g. correlated noise of a resampled image, where single-image estimators
     see almost none); mis-registered edges are outliers of the MAD.
+
+    With ``pts`` ((n, 2) array of (x, y) pixels) the estimate is local: the MAD of the
+    ``tile_px`` × ``tile_px`` tile holding each point, an (n,) array. SEM noise depends on
+    the signal (a dark background is less noisy in grey levels), and relief the flow does
+    not follow inflates a whole-view estimate: on pollen_pot1 the whole-view MAD is 4.1 grey
+    levels, 2.4 on the grooved substrate alone, 5.3 on the grain.
     """
     import cv2
 
@@ -167,15 +182,30 @@ def _aligned_noise(ref_img, warped, fwd, half_window):
     yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float32)
     al = cv2.remap(warped, xx + fwd[..., 0], yy + fwd[..., 1], cv2.INTER_LINEAR,
                    borderMode=cv2.BORDER_REFLECT)
-    a = np.asarray(ref_img, np.float32)
-    sig = 2.0 * half_window
-    ha = a - cv2.GaussianBlur(a, (0, 0), sig)
-    hb = al - cv2.GaussianBlur(al, (0, 0), sig)
+    ha, hb = _highpass(ref_img, half_window), _highpass(al, half_window)
     m = 2 * half_window
-    ha, hb = ha[m:-m, m:-m], hb[m:-m, m:-m]
-    g = float((ha * hb).sum() / max(float((hb * hb).sum()), 1e-30))
-    d = (ha - g * hb).ravel()
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    g = float((ha[m:-m, m:-m] * hb[m:-m, m:-m]).sum()
+              / max(float((hb[m:-m, m:-m] ** 2).sum()), 1e-30))
+    d = ha - g * hb
+
+    def mad(x):
+        x = x.ravel()
+        return float(1.4826 * np.median(np.abs(x - np.median(x))) / np.sqrt(2.0))
+
+    whole = mad(d[m:-m, m:-m])
+    if pts is None:
+        return whole
+    ni, nj = hgt // tile_px, wid // tile_px
+    out = np.full(len(pts), whole)
+    if ni < 1 or nj < 1:
+        return out
+    ti = np.clip(np.asarray(pts, float)[:, 1] // tile_px, 0, ni - 1).astype(int)
+    tj = np.clip(np.asarray(pts, float)[:, 0] // tile_px, 0, nj - 1).astype(int)
+    for i, j in set(zip(ti.tolist(), tj.tolist())):   # the last tiles take the remainder
+        r1 = hgt if i == ni - 1 else (i + 1) * tile_px
+        c1 = wid if j == nj - 1 else (j + 1) * tile_px
+        out[(ti == i) & (tj == j)] = mad(d[i * tile_px:r1, j * tile_px:c1])
+    return out
 
 
 def _field_jacobian(field, pts):

@@ -38,9 +38,11 @@ from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
 from .match_sigma import aposteriori_sigma, match_sigma, model_error_at, model_error_from_fit
 from .match_band import _band_orientation, _coarse_parallax, _combine, _oriented_refine
+from .match_epipolar import epipolar_refine
 from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
                             _parallax_gradients)
 from .match_prior import (_aligned_noise, _apply_affine, _dense_prior, _field_jacobian,  # noqa: F401
+                          _highpass,
                           _flow_field, _flow_guess, _norm8, _robust_affine, _subset_std,
                           _to_uint8, fit_affine)
 from .noise import image_noise_sigma
@@ -275,7 +277,7 @@ class AutoMatchParams:
     ``dense_prior_below``, ``wide_search_px``), grid matching (``spacing_px``,
     ``half_window``, ``search_px``, ``smooth_sigma_px``, ``max_iter``, ``tol_px``,
     ``target_sigma_px``, ``max_half_window``, ``band_aware``, ``band_half_width_px``,
-    ``kappa``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
+    ``kappa``, ``epipolar``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
     ``max_roughness_px``, ``backward_px``, ``multiview_px``).
     """
 
@@ -305,6 +307,7 @@ class AutoMatchParams:
     dense_prior_below: float = 0.5
     target_sigma_px: float = None
     max_half_window: int = 28
+    epipolar: bool = True
 
 
 def auto_match(images, params=None, *, progress=True, features=None, **overrides):
@@ -325,8 +328,11 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        little texture (featureless background: subset standard deviation, noise removed,
        below ``min_texture_snr`` times the image noise) are flagged ``"low texture"`` and
        not matched. The noise is estimated from the difference of the first view pair
-       aligned by the flow of step 4 (whatever its spectrum), or without ``dense_init``
-       by Immerkær's white-noise estimator.
+       aligned by the flow of step 4 (whatever its spectrum), locally (the 64×64 tile of
+       each point: SEM noise depends on the signal, and relief the flow misses inflates a
+       whole-view estimate), with the subset contrast taken on the same high-passed image
+       (minus a Gaussian of ``2 half_window``: smooth shading is not texture), or without
+       ``dense_init`` by Immerkær's white-noise estimator.
     4. Dense initial guess (``dense_init``): the view is mapped into the reference frame by
        the affine, both are contrast-normalised and DIS optical flow (Kroeger et al. 2016,
        coarse to fine) gives each grid point its position and local warp gradient, to about
@@ -341,6 +347,14 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        subset along the local direction of the parallax bands (structure tensor of the
        dense parallax field) and that estimate is kept where the square subset disagrees
        with it (see :func:`refine_correspondences`).
+    6b. Epipolar stage (``epipolar``): points the 2D subsets failed on (diverged, not
+       converged, ZNCC below ``min_zncc``) are matched along the parallax direction only
+       (:func:`semlab.match_epipolar.epipolar_refine`: the cross-parallax position held
+       on the global affine map's epipolar line, the shift searched within
+       ``±max(search_px, wide_search_px)`` and refined with its gradient). Texture that
+       constrains only the parallax direction (machined grooves, scratches across it)
+       makes the 2D Hessian nearly singular; the shift stereo needs is still defined. On
+       ``pollen_pot1`` the grooved substrate is matched this way.
     7. Outlier filter: convergence, ``zncc >= min_zncc`` in every view, local consistency
        of the parallax and cross-parallax residuals against the 8 nearest grid neighbours
        (median ± max(4 × 1.4826 MAD, ``consistency_px``)), repeated once, a local
@@ -402,7 +416,10 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         above the random matching error of noisy images). Near the sharp flanks of
         extrusions the parallax is not affine within any subset and heights come out biased
         by tens of nm; these points are dropped here (they remain reachable with
-        :func:`refine_correspondences`). None keeps them.
+        :func:`refine_correspondences`). Where most of the view is rough (its median
+        roughness above the threshold: a pollen grain's reticulum), the threshold rises to
+        that median plus 4 × 1.4826 MAD, so that only roughness standing out of the
+        surface's own is rejected (steep flanks are a minority). None keeps them.
     dense_init : bool
         Initial guesses from dense optical flow (step 4); False uses the sparse prior.
     wide_search_px : int
@@ -418,8 +435,10 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     backward_px : float or None
         Forward–backward check: each accepted point is matched back from the view to the
         reference (IC-GN started at the reference position with the inverse warp) and
-        marked invalid when it does not return to within ``backward_px`` pixels (a second
-        IC-GN pass over the accepted points; None skips it). It removes points whose match
+        marked invalid when it does not return to within ``max(backward_px, 3 √2 σ)``
+        pixels, σ the point's predicted x error in that view (the distance holds the random
+        errors of both matches; a second IC-GN pass over the accepted points; None skips
+        it). It removes points whose match
         depends on the direction, e.g. subsets straddling occlusions or parallax edges.
     max_features : int
         At most this many sparse features per view (the strongest; they only fix the
@@ -433,6 +452,9 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         Size each grid point's subset by its information, from ``half_window`` up to
         ``max_half_window`` (see :func:`refine_correspondences`); the forward–backward
         check uses each point's own subset. None: one fixed ``half_window``.
+    epipolar : bool
+        Run the epipolar stage 6b (the forward–backward check of its points is along the
+        epipolar direction too).
 
     Returns
     -------
@@ -451,7 +473,8 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     (ref_view, spacing_px, detector, ratio, half_window, min_zncc, max_points, seed, search_px,
      smooth_sigma_px, consistency_px, band_aware, band_half_width_px, kappa, max_roughness_px,
      dense_init, wide_search_px, min_texture_snr, multiview_px, max_iter, tol_px, max_features,
-     backward_px, dense_prior_below, target_sigma_px, max_half_window) = astuple(params)
+     backward_px, dense_prior_below, target_sigma_px, max_half_window,
+     epipolar) = astuple(params)
     ims = _check_images(images)
     v = len(ims)
     ref = _check_ref_view(ref_view, v)
@@ -492,6 +515,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     valid = np.ones(n, bool)
     reason = np.full(n, "", dtype=object)
     side = np.zeros(n, int)
+    epi = np.zeros((n, v), bool)     # matched along the epipolar direction only
 
     noise0 = image_noise_sigma(ims[ref])   # white-noise estimate, regulariser of the flow
     eps = max(noise0, 1e-3 * float(np.ptp(ims[ref])) + 1e-12)
@@ -544,13 +568,16 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             warped, fwd, bwd = _flow_field(ims[ref], ims[j], prior, half_window, eps)
         if work is None:
             # texture test on the reference view, with the noise seen between the views
-            noise = _aligned_noise(ims[ref], warped, fwd, half_window) if dense_init \
-                else noise0
+            noise = _aligned_noise(ims[ref], warped, fwd, half_window, pts=grid) \
+                if dense_init else noise0
+            if dense_init:   # contrast of the image the noise is measured on (high-passed)
+                sub_std = _subset_std(_highpass(ims[ref], half_window), half_window, grid)
             contrast = np.sqrt(np.maximum(sub_std ** 2 - noise ** 2, 0.0))
             textured = contrast >= min_texture_snr * noise
+            noise_i = np.broadcast_to(noise, contrast.shape)
             for i in np.flatnonzero(~textured):
                 reason[i] = (f"low texture: subset contrast {contrast[i]:.2f} < "
-                             f"min_texture_snr × noise = {min_texture_snr * noise:.2f} "
+                             f"min_texture_snr × noise = {min_texture_snr * noise_i[i]:.2f} "
                              "(featureless background?)")
             valid &= textured
             work = np.flatnonzero(textured)
@@ -608,8 +635,18 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             pts_j, sig_j, rr_j = pts_j.copy(), sig_j.copy(), rr_j.copy()
             pts_j[sel], sig_j[sel] = c_pts, c_sig
             rr_j[sel] = np.where(use, o_rr, rr_j[sel])
+        zn_j = r.zncc
+        epi_j = np.zeros(nw, bool)
+        epi_coef = None
+        if epipolar and not ok_j.all():
+            pts_j, sig_j, rr_j, zn_j, ok_j, epi_j, r, epi_coef = _epipolar_stage(
+                ims[ref], ims[j], gw, M, e, np.where(np.isfinite(guess), guess, guess0),
+                pts_j, sig_j, rr_j, ok_j, r, half_window, grad, init_w, min_zncc,
+                smooth_sigma_px, ref_coef, cur_coef, max_iter, tol_px,
+                max(search_px, wide_search_px), seed)
+            epi[work, j] = epi_j
         out[work, j] = pts_j
-        zn[work, j] = r.zncc
+        zn[work, j] = zn_j
         sig_x[work, j] = sig_j
         sig_ap[work, j] = aposteriori_sigma(sig_j, rr_j)
         for k in np.flatnonzero(~ok_j):
@@ -617,7 +654,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             if not r.converged[k]:
                 why = r.reason[k]
             else:
-                why = f"zncc {r.zncc[k]:.2f} < min_zncc {min_zncc}"
+                why = f"zncc {zn_j[k]:.2f} < min_zncc {min_zncc}"
             if valid[i]:
                 reason[i] = f"view {j}: {why}"
         valid[work[~ok_j]] = False
@@ -628,7 +665,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
             warp_full[work] = np.where(np.isfinite(r.warp), r.warp, init_w)
             hw_full = np.full(n, int(half_window))
             hw_full[work] = np.where(hw_j > 0, hw_j, half_window)
-            fwd_state[j] = (cur_coef, warp_full, hw_full)
+            fwd_state[j] = (cur_coef, warp_full, hw_full, e, epi_coef)
 
     # local consistency of parallax and cross-parallax against grid neighbours (twice)
     for _ in range(2 if consistency_px is not None else 0):
@@ -666,28 +703,41 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
                     grid[idx], rough_h, sig_x[idx, j], h, k_h, 6 if j in curved else 3)[m]
             if max_roughness_px is None:
                 continue
-            bad = rough > thr
+            # a surface rough all over (a pollen grain's reticulum) is not a steep flank:
+            # only roughness that stands out of the view's own distribution is rejected
+            med = float(np.median(rough))
+            thr_j = thr if med <= thr else \
+                max(thr, med + 4 * 1.4826 * float(np.median(np.abs(rough - med))))
+            bad = rough > thr_j
             for i, rr in zip(idx[bad], rough[bad]):
                 if valid[i]:
                     reason[i] = (f"view {j}: parallax not locally planar (plane RMS {rr:.2f} px "
-                                 f"> {thr:.2f} px: steep flank)")
+                                 f"> {thr_j:.2f} px: steep flank)")
             valid[idx[bad]] = False
     if backward_px is not None:
-        for j, (coef_j, warp_j, hw_full) in fwd_state.items():
+        for j, (coef_j, warp_j, hw_full, e_j, epi_coef) in fwd_state.items():
             idx = np.flatnonzero(valid)
             if len(idx) == 0:
                 break
             fb_d = np.full(len(idx), np.nan)
             for h in np.unique(hw_full[idx]):      # the backward match uses the same subset
-                k = hw_full[idx] == h
-                fb_d[k] = _backward_distance(ims[j], ims[ref], out[idx[k], j], grid[idx[k]],
-                                             warp_j[idx[k]], int(h), smooth_sigma_px, coef_j,
-                                             ref_coef, max_iter, tol_px)
-            bad = ~(fb_d <= backward_px)
-            for i, dd in zip(idx[bad], fb_d[bad]):
+                for one_d in (False, True):        # ... and the same shape function
+                    k = (hw_full[idx] == h) & (epi[idx, j] == one_d)
+                    if not k.any():
+                        continue
+                    sm, rc, cc = epi_coef if one_d else (smooth_sigma_px, ref_coef, coef_j)
+                    fb_d[k] = _backward_distance(ims[j], ims[ref], out[idx[k], j],
+                                                 grid[idx[k]], warp_j[idx[k]], int(h), sm,
+                                                 cc, rc, max_iter, tol_px,
+                                                 direction=e_j if one_d else None)
+            # the distance holds the random errors of both matches: 3 σ of their difference
+            s_j = sig_x[idx, j]
+            thr_fb = np.maximum(backward_px, 3 * np.sqrt(2) * np.where(np.isfinite(s_j), s_j, 0))
+            bad = ~(fb_d <= thr_fb)
+            for i, dd, tt in zip(idx[bad], fb_d[bad], thr_fb[bad]):
                 reason[i] = (f"view {j}: forward–backward mismatch "
                              + ("(backward match failed)" if np.isnan(dd) else
-                                f"{dd:.2f} px > backward_px {backward_px}"))
+                                f"{dd:.2f} px > max(backward_px, 3√2 σ) = {tt:.2f} px"))
             valid[idx[bad]] = False
     if multiview_px is not None and v >= 3 and valid.sum() >= 8:
         mres, _ = _multiview_residual(out, ref, valid, seed=seed)
@@ -708,6 +758,68 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma, reason=reason.astype(str),
                        ref_view=ref, kind=np.full(n, "auto"), source_index=gidx,
                        subset_px=side, params=params)
+
+
+def _epipolar_stage(ref_img, img, gw, M, e, start, pts_j, sig_j, rr_j, ok_j, r, half_window,
+                    grad, init_w, min_zncc, smooth_sigma_px, ref_coef, cur_coef, max_iter, tol_px,
+                    search_px, seed, n_trial=200, smooth_px=1.0):
+    """Grid points the 2D subsets failed on, matched along the epipolar direction only.
+
+    Where a subset's texture constrains only the parallax direction ``e`` (grooves or
+    scratches across it), the 2D IC-GN diverges along the texture; the affine epipolar
+    constraint fixes the cross-parallax position and gradient at the global affine map
+    ``M``'s (the parallax gradient starts at the flow's, ``init_w``), and
+    :func:`semlab.match_epipolar.epipolar_refine` finds the shift along ``e`` (searched
+    within ``±search_px``) and its gradient. Pre-smoothing as :func:`_choose_smoothing`
+    decides for 2D subsets: unsmoothed unless fewer than half of ``n_trial`` random
+    points then reach ``min_zncc`` (JPEG-compressed views), else ``smooth_px``. Returns the
+    updated ``(pts, sigma, residual_ratio, zncc, ok, one_d, result)`` of the view, ``one_d`` marking the
+    points taken from this stage (their warp replaces ``r.warp``), and the stage's
+    ``(smooth_sigma_px, ref_coef, cur_coef)`` for the backward check.
+    """
+    fail = np.flatnonzero(~ok_j & np.all(np.isfinite(start), 1))
+    zn_j = r.zncc.copy()
+    one_d = np.zeros(len(gw), bool)
+    coefs = (smooth_sigma_px, ref_coef, cur_coef)
+    if len(fail) == 0:
+        return pts_j, sig_j, rr_j, zn_j, ok_j, one_d, r, coefs
+    base = _apply_affine(M, gw[fail])
+    guess = base + ((start[fail] - base) @ e)[:, None] * e
+    gm = np.array([[grad[1], grad[2]], [grad[4], grad[5]]])
+    iw = np.broadcast_to(init_w, (len(gw), 6))[fail]
+    gf = np.stack([np.stack([iw[:, 1], iw[:, 2]], 1), np.stack([iw[:, 4], iw[:, 5]], 1)], 1)
+    G = gm + e[:, None] * np.einsum("i,nij->nj", e, gf - gm)[:, None, :]
+    z = np.zeros(len(fail))
+    held = np.column_stack([z, G[:, 0, 0], G[:, 0, 1], z, G[:, 1, 0], G[:, 1, 1]])
+
+    def run(k, sm, rc, cc):
+        return epipolar_refine(ref_img, img, gw[fail[k]], guess[k], e, half_window, held[k],
+                               search_px=search_px, max_iter=max_iter, tol_px=tol_px,
+                               smooth_sigma_px=sm, ref_prefiltered=rc, cur_prefiltered=cc)
+
+    if not smooth_sigma_px:
+        k = np.random.default_rng(seed).choice(len(fail), min(len(fail), n_trial), False)
+        t = run(k, 0.0, ref_coef, cur_coef)
+        if np.mean(t.converged & (t.zncc >= min_zncc)) < 0.5:
+            coefs = (smooth_px, prefilter_image(ref_img, smooth_px),
+                     prefilter_image(img, smooth_px))
+    q = run(slice(None), *coefs)
+    use = q.converged & (q.zncc >= min_zncc) & np.isfinite(q.sigma_px[:, 0])
+    k = fail[use]
+    pts_j, sig_j, rr_j, ok_j = pts_j.copy(), sig_j.copy(), rr_j.copy(), ok_j.copy()
+    pts_j[k], sig_j[k], zn_j[k], ok_j[k], one_d[k] = q.pts[use], q.sigma_px[use, 0], \
+        q.zncc[use], True, True
+    rr_j[k] = q.residual_ratio[use]
+    # an unaccepted 1-D match with a better ZNCC explains the failure better
+    better = fail[~use & q.converged & (q.zncc > zn_j[fail])]
+    zn_j[better] = q.zncc[np.searchsorted(fail, better)]
+    warp = r.warp.copy()
+    warp[k] = q.warp[use]
+    conv = r.converged.copy()
+    conv[k] = True
+    conv[better] = True
+    return (pts_j, sig_j, rr_j, zn_j, ok_j, one_d, replace(r, warp=warp, converged=conv),
+            coefs)
 
 
 def _auto_params(params, overrides):

@@ -312,7 +312,9 @@ def test_auto_match_large_parallax(dome):
                             for t in TILTS]), axis=0)
     assert np.ptp(par) > 25                   # parallax varies by tens of pixels
     new = auto_match(ims, progress=False)
-    old = auto_match(ims, progress=False, dense_init=False)   # sparse parallax prior
+    # sparse parallax prior, without the epipolar stage's wide 1-D search (which rescues
+    # points the sparse prior leaves too far off: 65 % valid with it)
+    old = auto_match(ims, progress=False, dense_init=False, epipolar=False)
     assert new.valid.mean() >= 0.75
     assert old.valid.mean() < 0.6 and new.valid.sum() > 1.5 * old.valid.sum()
     v = new.only_valid()
@@ -377,7 +379,11 @@ def test_quartz_tilt_series():
     assert len(v) >= 1000
     # the dark background around the grain is flagged, not silently dropped
     corner = (a.pts[:, 0, 0] < 150) & (a.pts[:, 0, 1] > 1050)
-    assert corner.sum() > 50 and all(r.startswith("low texture") for r in a.reason[corner])
+    low = np.array([r.startswith("low texture") for r in a.reason[corner]])
+    assert corner.sum() > 50 and not a.valid[corner].any()
+    # (the noise is measured locally: ~18 % of the corner, faint blobs a little above the
+    # dark background's own noise, pass the texture test and then fail to match)
+    assert low.mean() > 0.75
     est = estimate_tilts(v.pts, None, n_boot=0, progress=False)
     assert est.residual_px < 0.1
     d = np.diff(est.tilt_deg)
