@@ -129,7 +129,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
                   max_jump_px=None, subset_half_window=None, max_gap_frames=3,
                   lk_check_px=0.2, register=None, target_sigma_px=None, max_half_window=20,
-                  curvature_neighbours=9):
+                  curvature_neighbours=9, max_residual_ratio=2.0):
     """Track points seeded in the last frame backwards in time to frame 0.
 
     With ``register``, every frame is first registered to the reference by one global
@@ -250,6 +250,15 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         0.1 px sinusoid on a real texture (``benchmarks/resolution_sinusoid.py``) the
         noise alone grew the subsets to 41 px and gave 0.025 px RMS at a 100 px period
         and 0.043 at 75; with the curvature 0.014 and 0.021.
+    max_residual_ratio : float or None
+        With ``method="subset"``: largest ratio of a step's residual to the one the
+        measured noise predicts (:attr:`semlab.subset.SubsetResult.residual_ratio`): a
+        subset over a slip step or changed relief fits no affine map, and its σ does not
+        hold. None: no check. On three synthetic series (``benchmarks/tracking_accuracy.py``
+        (d)) 2.0 removed the 4 / 1 / 1 valid steps more than 0.5 px off of fixed 21×21
+        subsets (valid fraction 0.365 / 0.339 / 0.350 -> 0.341 / 0.327 / 0.313), and with
+        ``target_sigma_px=0.02`` left 1 / 2 / 0 of them (7 / 4 / 2 without it) at a valid
+        fraction of 0.63 / 0.58 / 0.54.
     register : {None, "similarity", "affine", "translation"} or Registration
         Track in the registered geometry: the transform model to estimate, or a
         precomputed :class:`~semlab.registration.Registration` of these frames (reference
@@ -478,6 +487,11 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             good &= np.isfinite(z) & (z >= min_zncc)
         if max_sigma_px is not None:
             good &= sig[k] <= max_sigma_px
+        if max_residual_ratio is not None and method == "subset":
+            # a subset whose residual the noise does not explain fits no affine map (a
+            # slip step, changed relief): its σ does not hold
+            rr = np.asarray(res.residual_ratio, float)
+            good &= np.isfinite(rr) & (rr <= float(max_residual_ratio))
         if max_gap_frames is not None:
             # a track suspended for longer than max_gap_frames has ended: re-acquiring it
             # after a long gap is where look-alike features get matched
@@ -517,7 +531,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   target_sigma_px=target_sigma_px,
                   max_half_window=max_half_window if target_sigma_px is not None else None,
                   curvature_neighbours=curvature_neighbours if target_sigma_px is not None
-                  else None)
+                  else None, max_residual_ratio=max_residual_ratio)
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
                   subset_px=side if method == "subset" else None,
                   reference_frame=ref, method=method, params=params, registration=reg)

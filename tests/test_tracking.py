@@ -399,3 +399,34 @@ def test_subset_tracking_sizes_subsets_by_information(series):
     assert rms[9] < 0.9 * rms[None] and big[9] < big[None], (rms, big)
     with pytest.raises(TrackingError, match="method='subset'"):
         track_reverse(frames, seeds, method="lk", target_sigma_px=0.02, progress=False)
+
+
+def test_residual_check_flags_subsets_over_a_slip_step():
+    """Frame 0 slipped by 1.2 px in x below y = 70 (a slip step): the subsets over the step
+    fit no affine map and match a blend (0.3–0.8 px off) with a small σ and a fine
+    forward–backward error; the residual check (default max_residual_ratio=2) marks them
+    invalid and keeps the seeds whose subsets stay off the step."""
+    rng = np.random.default_rng(0)
+    tex, pad = _texture(rng, (140, 200))
+    yy, xx = np.mgrid[0:140, 0:200].astype(float)
+
+    def frame(step_px, seed):
+        ux = np.where(yy >= 70, step_px, 0.0)
+        img = ndimage.map_coordinates(tex, [yy + pad, xx - ux + pad], order=3)
+        return 100 + 40 * img + 0.4 * np.random.default_rng(seed).standard_normal(img.shape)
+
+    frames = [frame(1.2, 1), frame(0.0, 2)]
+    gx, gy = np.meshgrid(np.arange(30, 171, 10.0), np.arange(25, 116, 5.0))
+    seeds = np.column_stack([gx.ravel(), gy.ravel()])
+    true0 = seeds + np.where(seeds[:, 1] >= 70, 1.2, 0.0)[:, None] * [1, 0]
+    off_step = np.abs(seeds[:, 1] - 69.5) > 11        # subset rows all on one side
+    for kw in ({}, {"target_sigma_px": 0.02}):
+        n_bad = {}
+        for rr in (None, 2.0):
+            tr = track_reverse(frames, seeds, method="subset", progress=False,
+                               outlier_threshold=None, max_residual_ratio=rr, **kw)
+            e = np.linalg.norm(tr.xy[0] - true0, axis=1)
+            n_bad[rr] = int((tr.valid[0] & (e > 0.3)).sum())
+            if rr:
+                assert tr.valid[0][off_step].all()
+        assert n_bad[None] >= 20 and n_bad[2.0] == 0, n_bad
