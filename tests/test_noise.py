@@ -34,3 +34,20 @@ def test_noise_errors_and_gain():
         image_noise_sigma(np.zeros((5, 5)), mask=np.ones((4, 4), bool))
     assert filter_noise_gain(lambda a: a) == 1.0
     assert filter_noise_gain(lambda a: ndimage.uniform_filter(a, 3)) == pytest.approx(1 / 9)
+
+
+@pytest.mark.parametrize("level", ["low", "realistic"])
+def test_noise_of_a_poisson_8bit_sem_view(level):
+    """Known answer on the detector model of semlab.synth (Poisson shot noise for a dose,
+    gain, 8-bit quantisation): the estimate is the RMS of the per-pixel noise σ, on a
+    speckle and on a low-texture (polished) scene."""
+    from semlab import synth
+
+    det = synth.as_detector(level)
+    for texture in ("speckle", "polished"):
+        scene = synth.make_scene(seed=0, size=(128, 160), texture=texture)
+        clean, _, _ = synth.render(scene, (128, 160), -5.0, noise=0)
+        img = synth.detect(clean, det, np.random.default_rng(1), gain=1.0, offset=0.0)
+        top = (2 ** det.bits - 1) / det.full_scale
+        true = np.sqrt(np.mean(top ** 2 * np.clip(clean, 0, None) / det.dose_e_per_px + 1 / 12))
+        assert image_noise_sigma(img) == pytest.approx(true, rel=0.08), texture
