@@ -71,6 +71,10 @@ class AnalysisConfig:
         Seed of the bootstrap.
     track_method : {"lk", "subset"}
         Pyramidal Lucas–Kanade or IC-GN subsets for the tracking steps.
+    track_target_sigma_px : float or None
+        With ``track_method="subset"``: size each step's subset by its information and the
+        displacement's curvature (``track_reverse(target_sigma_px=...)``, pixels); None:
+        fixed 21×21 subsets.
     gauge_length_px : float or None
         Gauge length of the sparse strain (None: from the track density).
     heightmap : bool
@@ -90,6 +94,7 @@ class AnalysisConfig:
     n_boot: int = 200
     seed: int = 0
     track_method: str = "lk"
+    track_target_sigma_px: float | None = None
     gauge_length_px: float | None = None
     heightmap: bool = True
     heightmap_roi: tuple | None = None
@@ -112,6 +117,11 @@ class AnalysisConfig:
                               "raw, refined, auto, merged (or None)")
         if self.track_method not in TRACK_METHODS:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
+        t = self.track_target_sigma_px
+        if t is not None and not (self.track_method == "subset" and isinstance(t, (int, float))
+                                  and not isinstance(t, bool) and t > 0):
+            raise SemlabError(f"track_target_sigma_px = {t!r}: give a target > 0 pixels with "
+                              "track_method = 'subset', or None")
         if int(self.n_boot) != self.n_boot or self.n_boot < 0:
             raise SemlabError(f"n_boot = {self.n_boot!r}: give a whole number >= 0")
         if self.heightmap_method not in ("subset", "variational"):
@@ -149,7 +159,7 @@ class AnalysisConfig:
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
         own = {"stereo": ("stereo_method", "n_boot", "seed"),
-               "heightmap": ("heightmap_roi", "heightmap_method"), "tracking": ("track_method",),
+               "heightmap": ("heightmap_roi", "heightmap_method"), "tracking": ("track_method", "track_target_sigma_px"),
                "strain": ("gauge_length_px",)}
         needs = {"stereo": ("stereo",), "heightmap": ("stereo", "heightmap"),
                  "tracking": ("stereo", "tracking"),
@@ -538,8 +548,10 @@ class Analysis:
                     stereo = (s.pts[:, 0], s.z_um)
                 except StepFailed:
                     stereo = None  # tracking goes on with corner seeds; the stereo step reports
+            kw = None if cfg.track_target_sigma_px is None else {
+                "target_sigma_px": float(cfg.track_target_sigma_px)}
             return series.run_tracking(exp, stereo=stereo, method=cfg.track_method,
-                                         progress=self.progress)
+                                         track_kw=kw, progress=self.progress)
 
         return self._cached("tracking", cfg.for_step("tracking"), compute,
                             series.write_tracking_results)

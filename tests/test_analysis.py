@@ -46,6 +46,19 @@ def test_a_changed_setting_recomputes_only_the_steps_that_depend_on_it(computed)
     assert other.computed == ["tracking"]  # the stereo seeds came from the cache
 
 
+def test_tracking_with_subsets_sized_by_information(computed):
+    exp, out, an, _ = computed
+    other = semlab.Analysis(exp, out, n_boot=0, track_method="subset",
+                            track_target_sigma_px=0.02, progress=False)
+    tr = other.tracking().tracks
+    assert other.computed == ["tracking"]
+    assert tr.params["target_sigma_px"] == 0.02 and tr.method == "subset"
+    with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
+        semlab.AnalysisConfig(track_target_sigma_px=0.02)          # LK has no subsets
+    with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
+        semlab.AnalysisConfig(track_method="subset", track_target_sigma_px=0)
+
+
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,
                                                                  monkeypatch):
     calls = []
