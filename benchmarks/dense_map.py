@@ -46,7 +46,10 @@ def scenes(quick):
            ("speckle ±5° seed 2", dict(seed=2)),
            ("speckle 0/+8° seed 0", dict(seed=0, tilts_deg=(0.0, 8.0))),
            ("polished ±5° seed 0, realistic noise", dict(seed=0, texture="polished",
-                                                        detector="realistic"))]
+                                                        detector="realistic")),
+           ("polished 0/+8° seed 0, realistic noise", dict(seed=0, texture="polished",
+                                                          detector="realistic",
+                                                          tilts_deg=(0.0, 8.0)))]
     real = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_sem"
     if real.exists():
         out.append(("real FEI texture ±5° seed 0", dict(seed=0, source="fei")))

@@ -31,7 +31,8 @@ Laplacian plus the data precision) is solved by preconditioned conjugate gradien
 1σ per pixel: ``A`` is the posterior precision of the last linearisation (data precision
 from the noise, prior precision from the edge weights); its inverse's diagonal is estimated
 by perturbation sampling (``x = A⁻¹ (D^½ n₁ + Gᵀ W^½ n₂)`` has covariance ``A⁻¹``), the
-sample variances smoothed over a few pixels (``sigma_mode`` for the alternatives).
+sample variances smoothed over a few pixels, plus the square of the smoothing's plug-in
+bias ``A⁻¹ Gᵀ W G d̂`` (``sigma_mode`` for the alternatives).
 
 Conventions: images ``[row, col]``, points ``(x, y)`` pixels, a ``roi = (x0, y0, x1, y1)``
 half-open in view-0 pixels (see :mod:`semlab.heightmap`).
@@ -89,10 +90,11 @@ class VariationalParams:
     prior_window_px : int
         The rule: ``s`` = median data-only 1σ of the parallax of a ``window²`` window
         (``1 / sqrt(Σ J² / σ²)`` over the window), from the measured noise.
-    sigma_mode : {"posterior", "noise", "noise+bias"}
-        1σ from the posterior covariance ``A⁻¹`` (default; conservative where the surface
-        is smoother than the prior allows), from the noise only (``A⁻¹ D A⁻¹``, misses the
-        smoothing bias), or the noise plus the plug-in bias ``A⁻¹ Gᵀ W G d̂``.
+    sigma_mode : {"posterior+bias", "posterior", "noise", "noise+bias"}
+        1σ² from the posterior covariance ``A⁻¹`` plus the square of the prior's plug-in
+        bias ``A⁻¹ Gᵀ W G d̂`` (default: the pull of the smoothing at band walls, which the
+        posterior of a locally linearised model misses), the posterior alone, the noise only
+        (``A⁻¹ D A⁻¹``, misses the smoothing bias) or the noise plus the bias.
     """
 
     levels: int = 1
@@ -113,7 +115,7 @@ class VariationalParams:
     prior_window_px: int = 15
     max_step_px: float = 0.0
     prior_order: int = 1
-    sigma_mode: str = "posterior"
+    sigma_mode: str = "posterior+bias"
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
@@ -399,9 +401,9 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     from .noise import image_noise_sigma
 
     prm = params or VariationalParams()
-    if prm.sigma_mode not in ("posterior", "noise", "noise+bias"):
-        raise SemlabError(f"VariationalParams.sigma_mode must be 'posterior', 'noise' or "
-                          f"'noise+bias', got {prm.sigma_mode!r}")
+    if prm.sigma_mode not in ("posterior", "noise", "noise+bias", "posterior+bias"):
+        raise SemlabError(f"VariationalParams.sigma_mode must be 'posterior', 'noise', "
+                          f"'noise+bias' or 'posterior+bias', got {prm.sigma_mode!r}")
     v0, v1, p0, ok0 = _check_inputs(view0, view1, parallax0, valid0)
     hgt, wid = v0.shape
     roi = _check_roi(roi, v0.shape)
@@ -556,9 +558,9 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
     wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
-    xs = _samples(D, wh, wv, prm, rng, prm.n_samples, prm.sigma_mode == 'posterior')
+    xs = _samples(D, wh, wv, prm, rng, prm.n_samples, prm.sigma_mode.startswith("posterior"))
     var = np.mean([x * x for x in xs], 0)
-    if prm.sigma_mode == "noise+bias":
+    if prm.sigma_mode in ("noise+bias", "posterior+bias"):
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂)
         bias = _cg(D, wh, wv, _laplace_apply(dl, wh, wv), np.zeros_like(dl), prm.cg_iter,
                    prm.cg_tol)
