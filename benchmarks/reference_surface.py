@@ -12,16 +12,18 @@ Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen
    in units of the points' own height σ (from the matching σ); for Gaussian errors the floor
    is 3.29 σ.
 2. Real: ../shared/data/real_sem/pollen_pot1 (4 views, tilts and pixel size unknown, a grain
-   on a grooved substrate; heights in pixels). Matches: auto_match over the 4 views (the
-   grain) plus a grid on the substrate (outside the grain's disc) matched by ZNCC into each
-   view warped by the substrate's affine map (pairwise auto matches give the map; the
-   grooves run along y, so IC-GN has no y texture there). Tilts estimated
-   (semlab.reconstruct.estimate_tilts), levelled on the reference surface (the substrate
-   mask as reference_region), checked against the x-scales (semlab.tiltcheck.check_tilts).
-   Reported: tilt differences with σ, the plane left across the substrate (its height change
-   over the substrate's extent and that change's σ), and the groove relief: RMS height
-   difference of substrate points 6–12 px apart across the grooves (along x) against along
-   them (along y, noise only).
+   on a grooved substrate; heights in pixels), matched by semlab.matching.auto_match alone
+   (defaults; the grooved substrate through its epipolar stage). Reported: the accepted
+   fraction of the grid points on the grain (inside its ellipse) and on the substrate
+   (outside 1.06 times it); tilts estimated (semlab.reconstruct.estimate_tilts) and levelled
+   on the default reference (the dominant flat surface, RANSAC); how many of its inliers lie
+   on the substrate; the error bars checked without truth: heights from view pairs (0,1),
+   (2,3) and (1,2) alone, their differences over the predicted σ; the plane left across the
+   substrate (weighted least squares, its change over the substrate's extent ±1σ) through
+   all substrate points and through the lands only (upper envelope: the grooves, more than
+   2σ below, dropped); the x-scale tilt check (semlab.tiltcheck.check_tilts); the groove
+   relief: RMS height difference of substrate points 6–12 px apart across the grooves
+   (along x) against along them (along y, noise only).
 """
 
 from __future__ import annotations
@@ -30,26 +32,24 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from semlab.io import read_image  # noqa: E402
-from semlab.matching import auto_match, fit_affine  # noqa: E402
+from semlab.matching import auto_match  # noqa: E402
 from semlab.plane import fit_reference_plane, heights_above_plane  # noqa: E402
 from semlab.reconstruct import estimate_tilts, heights_from_tilts  # noqa: E402
-from semlab.subset import zncc_match  # noqa: E402
 from semlab.surface import height_sigma, reference_surface  # noqa: E402
 from semlab.tiltcheck import check_tilts, level_tilts  # noqa: E402
 from test_matching import S_UM, DomeScene  # noqa: E402
 
 POLLEN = ROOT.parent / "shared" / "data" / "real_sem" / "pollen_pot1"
-#: The grain's disc in view 0 of pollen_pot1 (centre, radius px); outside = substrate.
-GRAIN_CENTRE, GRAIN_RADIUS = np.array([395.0, 355.0]), 405.0
-#: Substrate grid matches need this ZNCC in every view.
-MIN_ZNCC = 0.8
+#: The grain's outline in view 0 of pollen_pot1: an ellipse (centre, semi-axes x, y in px).
+GRAIN_CENTRE, GRAIN_AXES = np.array([395.0, 352.0]), np.array([310.0, 340.0])
+#: Substrate: outside the ellipse scaled by this (the rim and the shadow are neither).
+SUBSTRATE_R = 1.06
 #: The README figure, written with --figure.
 FIGURE = ROOT / "docs" / "reference_surface_pollen.png" if "--figure" in sys.argv else None
 
@@ -100,28 +100,51 @@ def synthetic():
               f"{1000 * np.median(z[top] - zt[top]):.0f} |")
 
 
-def _substrate_grid(ims, pair_matches, step=6, half_window=10):
-    """Substrate points matched in every view (see the module docstring)."""
-    h, w = ims[0].shape
-    gy, gx = np.mgrid[16:h - 16:step, 16:w - 16:step]
-    g = np.column_stack([gx.ravel(), gy.ravel()]).astype(float)
-    g = g[np.hypot(*(g - GRAIN_CENTRE).T) > GRAIN_RADIUS]
-    maps = [np.eye(3)]
-    for p in pair_matches:  # substrate map view i -> i+1 from its auto matches
-        inv = np.linalg.inv(maps[-1])
-        p0 = p[:, 0] @ inv[:2, :2].T + inv[:2, 2]
-        s = np.hypot(*(p0 - GRAIN_CENTRE).T) > GRAIN_RADIUS
-        maps.append(np.vstack([fit_affine(p[s, 0], p[s, 1]), [0, 0, 1]]) @ maps[-1])
-    pts, zn = [g], []
-    for j in range(1, len(ims)):
-        M = maps[j][:2]
-        warped = cv2.warpAffine(ims[j].astype(np.float32), M, (w, h),
-                                flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
-        q, z = zncc_match(ims[0], warped, g, g, half_window=half_window, search_px=5)
-        q[z < MIN_ZNCC] = np.nan
-        pts.append(q @ M[:, :2].T + M[:, 2])
-    P = np.stack(pts, 1)
-    return P[np.all(np.isfinite(P), axis=(1, 2))]
+def _ellipse_r(xy):
+    """Normalised radius of (x, y) view-0 pixels in the grain's ellipse (1 on its outline)."""
+    return np.hypot((xy[:, 0] - GRAIN_CENTRE[0]) / GRAIN_AXES[0],
+                    (xy[:, 1] - GRAIN_CENTRE[1]) / GRAIN_AXES[1])
+
+
+def _pair_heights(P, tilt, pairs, sig_px, ref_view):
+    """Heights (N, len(pairs)) of every point from each view pair alone (pixels), and their
+    predicted 1σ from the matching σ (the reference view's coordinate is exact; a non-
+    reference view's x error is the point's ``sigma_px``)."""
+    z, zs = [], []
+    for a, b in pairs:
+        th = np.asarray(tilt)[[a, b]]
+        z.append(heights_from_tilts(P[:, [a, b]], th, 1.0).xyz_um[:, 2])
+        sa, sb = (np.where(k == ref_view, 0.0, sig_px) for k in (a, b))
+        ca, cb = np.cos(np.deg2rad(th))          # two views: semlab.surface.height_sigma
+        zs.append(np.sqrt(sa ** 2 * cb ** 2 + sb ** 2 * ca ** 2)
+                  / abs(np.sin(np.deg2rad(th[1] - th[0]))))
+    return np.column_stack(z), np.column_stack(zs)
+
+
+def _plane_left(q, sig):
+    """Weighted least-squares plane through (x, y, z) points: its height change across
+    their x and y extent and that change's 1σ (from the residual scatter)."""
+    a = np.column_stack([q[:, 0] - q[:, 0].mean(), q[:, 1] - q[:, 1].mean(), np.ones(len(q))])
+    w = 1.0 / np.asarray(sig, float) ** 2 * np.ones(len(q))
+    aw = a * np.sqrt(w)[:, None]
+    coef, *_ = np.linalg.lstsq(aw, q[:, 2] * np.sqrt(w), rcond=None)
+    r = q[:, 2] - a @ coef
+    chi2 = float(np.sum(w * r ** 2) / (len(r) - 3))
+    cov = np.linalg.inv(aw.T @ aw) * max(chi2, 1.0)
+    ext = np.ptp(q[:, :2], axis=0)
+    return [coef[k] * ext[k] for k in (0, 1)], [np.sqrt(cov[k, k]) * ext[k] for k in (0, 1)]
+
+
+def _lands(q, zsig, n_iter=5):
+    """The upper envelope of a grooved surface: a plane refitted through the points not more
+    than 2σ below it (the grooves are cut into the lands, so they lie on one side)."""
+    keep = np.ones(len(q), bool)
+    for _ in range(n_iter):
+        a = np.column_stack([q[keep, 0], q[keep, 1], np.ones(keep.sum())])
+        coef, *_ = np.linalg.lstsq(a, q[keep, 2], rcond=None)
+        r = q[:, 2] - np.column_stack([q[:, 0], q[:, 1], np.ones(len(q))]) @ coef
+        keep = r > -2 * zsig
+    return keep
 
 
 def pollen():
@@ -129,93 +152,118 @@ def pollen():
         print(f"(skipped: {POLLEN} not present)")
         return
     ims = [read_image(POLLEN / f"pot1_0{i}.jpg").data for i in range(4)]
+    ref_view = 0
     t = time.perf_counter()
-    grain = auto_match(ims, ref_view=1, progress=False).only_valid().pts
-    pairs = [auto_match([ims[i], ims[i + 1]], progress=False).only_valid().pts
-             for i in range(3)]
-    sub = _substrate_grid(ims, pairs)
+    m = auto_match(ims, ref_view=ref_view, progress=False)
     dt = time.perf_counter() - t
-    P = np.concatenate([grain, sub])
-    is_sub = np.r_[np.zeros(len(grain), bool), np.ones(len(sub), bool)]
-    print(f"\n### pollen_pot1 (real, 4 views, heights in pixels)\n\n{len(grain)} auto matches "
-          f"in all 4 views (the grain), {len(sub)} substrate grid matches ({dt:.0f} s)\n")
+    r_all = _ellipse_r(m.pts[:, ref_view])
+    on_grain, on_sub = r_all < 1.0, r_all > SUBSTRATE_R
+    # grid points whose subset stays inside every view (a match can exist at all)
+    hw = m.params.half_window + m.params.search_px
+    h, w = ims[0].shape
+    shift = [np.median(m.pts[m.valid, j] - m.pts[m.valid, ref_view], axis=0) for j in range(4)]
+    inside = np.all([(m.pts[:, ref_view, 0] + d[0] >= hw) & (m.pts[:, ref_view, 0] + d[0] < w - hw)
+                     for d in shift], axis=0)
+    print(f"\n### pollen_pot1 (real, 4 views, heights in pixels)\n\nsemlab.matching.auto_match "
+          f"(defaults, reference view {ref_view}, {dt:.0f} s): {m.valid.sum()} of {len(m.valid)} "
+          f"grid points matched in all 4 views\n")
+    print("| region | grid points | accepted | coverage | of those inside every view |")
+    print("|---|---|---|---|---|")
+    for name, sel in (("grain", on_grain), ("substrate", on_sub)):
+        print(f"| {name} | {sel.sum()} | {(sel & m.valid).sum()} | "
+              f"{(sel & m.valid).sum() / sel.sum():.1%} | "
+              f"{(sel & m.valid).sum() / (sel & inside).sum():.1%} |")
+    v = m.only_valid()
+    bad_sig = ~(np.isfinite(v.sigma_px) & (v.sigma_px > 0))
+    if bad_sig.any():
+        print(f"({bad_sig.sum()} accepted points without a finite σ left out)")
+        v = v.select(~bad_sig)
+    P = v.pts
+    is_sub = _ellipse_r(P[:, ref_view]) > SUBSTRATE_R
+    is_grain = _ellipse_r(P[:, ref_view]) < 1.0
+    sig_px = v.sigma_px
     est = estimate_tilts(P, n_boot=200, progress=False)
-    est_g = estimate_tilts(grain, n_boot=200, progress=False)
-    for name, e in (("grain + substrate", est), ("grain only (auto matches)", est_g)):
-        d = np.diff(e.tilt_deg)
-        print(f"- tilts from {name}: differences {np.round(d, 3).tolist()}°, σ of the tilts "
-              f"{np.round(e.tilt_sigma_deg, 3).tolist()}°")
-    hr = heights_from_tilts(P, est.tilt_deg, 1.0)
-    # matching σ of an x coordinate from the x residuals over the 4 views (2 unknowns per
-    # point, so 2 degrees of freedom); y is weakly defined along the grooves and not used
-    th = np.deg2rad(est.tilt_deg)
-    u_hat = hr.offsets_px[:, 0] + np.outer(hr.xyz_um[:, 0], np.cos(th)) \
-        + np.outer(hr.xyz_um[:, 2], np.sin(th))
-    sig_pt = np.sqrt(np.sum((P[:, :, 0] - u_hat) ** 2, axis=1) / (P.shape[1] - 2))
-    sig_px = float(np.median(sig_pt[is_sub]))
-    zsig = float(height_sigma(sig_px, est.tilt_deg, 1.0))
-    print(f"- matching σ (x, from the 4-view x residuals): substrate {sig_px:.3f} px, grain "
-          f"{np.median(sig_pt[~is_sub]):.3f} px; height σ {zsig:.2f} px")
-    region = np.hypot(*(P[:, 0] - GRAIN_CENTRE).T) > GRAIN_RADIUS
-    mask = np.zeros(ims[0].shape, bool)
-    yy, xx = np.mgrid[:mask.shape[0], :mask.shape[1]]
-    mask[np.hypot(xx - GRAIN_CENTRE[0], yy - GRAIN_CENTRE[1]) > GRAIN_RADIUS] = True
-    print("\n| reference | levelled tilts (°) | inliers | plane left across all substrate "
-          "points, least squares (px over its extent, ±1σ) | substrate spread 5–95 % (px) | "
-          "grain median (px) | tilt check |")
-    print("|---|---|---|---|---|---|---|")
-    for name, kw in (("substrate mask (reference_region)", {"region": mask}),
-                     ("dominant flat surface (default)", {})):
-        tilt = est.tilt_deg
-        for _ in range(2):
-            xyz = heights_from_tilts(P, tilt, 1.0).xyz_um
-            ref = reference_surface(xyz, zsig, xy_px=P[:, 0], **kw)
-            tilt = level_tilts(tilt, ref.plane)
+    d = np.diff(est.tilt_deg)
+    print(f"\n- tilts estimated (semlab.reconstruct.estimate_tilts, all accepted points): "
+          f"differences {np.round(d, 3).tolist()}°, σ of the tilts "
+          f"{np.round(est.tilt_sigma_deg, 3).tolist()}°")
+    print(f"- matching σ (auto_match sigma_px, median): substrate {np.median(sig_px[is_sub]):.3f}"
+          f" px, grain {np.median(sig_px[is_grain]):.3f} px")
+    # reference surface (default: the dominant flat surface), tilts levelled on it
+    tilt = est.tilt_deg
+    zsig = height_sigma(np.clip(sig_px, 1e-3, None), tilt, 1.0)
+    for _ in range(3):
         xyz = heights_from_tilts(P, tilt, 1.0).xyz_um
-        ref = reference_surface(xyz, zsig, xy_px=P[:, 0], **kw)
-        z = ref.heights(xyz)
-        q = np.column_stack([xyz[is_sub, :2], z[is_sub]])
-        a = np.column_stack([q[:, 0] - q[:, 0].mean(), q[:, 1] - q[:, 1].mean(), np.ones(len(q))])
-        coef, *_ = np.linalg.lstsq(a, q[:, 2], rcond=None)
-        r = q[:, 2] - a @ coef
-        cov = np.linalg.inv(a.T @ a) * (r @ r) / (len(r) - 3)
-        ext = np.ptp(q[:, :2], axis=0)
-        left = [coef[k] * ext[k] for k in (0, 1)]
-        left_sig = [np.sqrt(cov[k, k]) * ext[k] for k in (0, 1)]
-        rob = fit_reference_plane(q)  # robust: less moved by the one-sided grooves
-        left_r = [rob[k] * ext[k] for k in (0, 1)]
-        chk = check_tilts(P, tilt, sig_px, region=ref.inliers, strict=False)
-        n_sub_in = int(np.sum(ref.inliers & is_sub))
-        print(f"| {name} | {np.round(tilt, 2).tolist()} | {ref.n_inliers} ({n_sub_in} of "
-              f"{is_sub.sum()} substrate) | x {left[0]:+.2f} ± {left_sig[0]:.2f}, "
-              f"y {left[1]:+.2f} ± {left_sig[1]:.2f} (robust: x {left_r[0]:+.2f}, y "
-              f"{left_r[1]:+.2f}) | {spread(z[is_sub]):.1f} | "
-              f"{np.median(z[~is_sub]):.0f} | {'consistent' if chk.consistent else 'REFUSED'},"
-              f" surface tilt {chk.pretilt_deg:+.1f}° |")
-        if kw:
-            zr, xyr = z[is_sub], P[is_sub, 0]
-            fig_args = (ims[0], P[:, 0], z, ref.inliers)
+        ref = reference_surface(xyz, zsig, xy_px=P[:, ref_view])
+        tilt = level_tilts(tilt, ref.plane)
+    xyz = heights_from_tilts(P, tilt, 1.0).xyz_um
+    zsig = height_sigma(np.clip(sig_px, 1e-3, None), tilt, 1.0)
+    ref = reference_surface(xyz, zsig, xy_px=P[:, ref_view])
+    z = ref.heights(xyz)
+    n_in_sub = int(np.sum(ref.inliers & is_sub))
+    print(f"- reference (default, dominant flat surface by RANSAC): {ref.n_inliers} inliers, "
+          f"{n_in_sub} of them on the substrate ({n_in_sub / max(ref.n_inliers, 1):.0%}; "
+          f"{is_sub.sum()} substrate points); levelled tilts {np.round(tilt, 2).tolist()}°; "
+          f"grain median {np.median(z[is_grain]):+.0f} px")
+    # pair-to-pair agreement, without truth
+    pairs = ((0, 1), (2, 3), (1, 2))
+    zp, zps = _pair_heights(P, tilt, pairs, sig_px, ref_view)
+    print("\n| pair difference | points | robust SD of difference / predicted σ | within 1σ "
+          "| within 2σ | median predicted σ (px) |")
+    print("|---|---|---|---|---|---|")
+    for (i, k), in (((0, 1),), ((0, 2),), ((1, 2),)):
+        dz = zp[:, i] - zp[:, k]
+        sd = np.hypot(zps[:, i], zps[:, k])
+        for name, sel in (("grain", is_grain), ("substrate", is_sub)):
+            dd = dz[sel] - np.median(dz[sel])
+            dd = dd - np.column_stack([P[sel, ref_view], np.ones(sel.sum())]) @ np.linalg.lstsq(
+                np.column_stack([P[sel, ref_view], np.ones(sel.sum())]), dd, rcond=None)[0]
+            u = dd / sd[sel]
+            rsd = 1.4826 * np.median(np.abs(u - np.median(u)))
+            print(f"| {pairs[i]} − {pairs[k]}, {name} | {sel.sum()} | {rsd:.2f} | "
+                  f"{np.mean(np.abs(u) <= 1):.0%} | {np.mean(np.abs(u) <= 2):.0%} | "
+                  f"{np.median(sd[sel]):.2f} |")
+    # the plane left across the substrate: all points, and the lands only
+    q = np.column_stack([xyz[is_sub, :2], z[is_sub]])
+    zs_sub = zsig[is_sub]
+    lands = _lands(q, zs_sub)
+    ext = np.ptp(q[:, :2], axis=0)
+    print(f"\nThe substrate points span {ext[0]:.0f} × {ext[1]:.0f} px (x × y).")
+    print("\n| substrate points | n | plane left across the substrate: x, y (px over its extent, "
+          "±1σ) | 5–95 % spread (px) |")
+    print("|---|---|---|---|")
+    for name, sel in (("all (lands and grooves)", np.ones(len(q), bool)),
+                      ("lands only (upper envelope, grooves 2σ below dropped)", lands)):
+        left, left_s = _plane_left(q[sel], zs_sub[sel])
+        print(f"| {name} | {sel.sum()} | x {left[0]:+.2f} ± {left_s[0]:.2f}, y {left[1]:+.2f} ± "
+              f"{left_s[1]:.2f} | {spread(q[sel, 2]):.2f} |")
+    chk = check_tilts(P, tilt, float(np.median(sig_px[is_sub])), region=ref.inliers,
+                      strict=False)
+    print(f"\nTilt check on the reference inliers: "
+          f"{'consistent' if chk.consistent else 'REFUSED'}, surface tilt {chk.pretilt_deg:+.1f}°")
     from scipy.spatial import cKDTree
 
+    xyr, zr = P[is_sub, ref_view], z[is_sub]
     pr = cKDTree(xyr).query_pairs(13, output_type="ndarray")
-    d = xyr[pr[:, 1]] - xyr[pr[:, 0]]
+    dxy = xyr[pr[:, 1]] - xyr[pr[:, 0]]
     dz = zr[pr[:, 1]] - zr[pr[:, 0]]
-    along_y = (np.abs(d[:, 0]) < 1) & (np.abs(d[:, 1]) > 5)
-    along_x = (np.abs(d[:, 1]) < 1) & (np.abs(d[:, 0]) > 5)
+    along_y = (np.abs(dxy[:, 0]) < 1) & (np.abs(dxy[:, 1]) > 5)
+    along_x = (np.abs(dxy[:, 1]) < 1) & (np.abs(dxy[:, 0]) > 5)
     ry, rx = (float(np.sqrt(np.mean(dz[s] ** 2))) for s in (along_y, along_x))
     relief = np.sqrt(max(rx ** 2 - ry ** 2, 0.0) / 2)
-    print(f"\nGroove relief on the substrate (reference = substrate mask): RMS height "
-          f"difference of points 6–12 px apart along the grooves (y) {ry:.2f} px, across them "
-          f"(x) {rx:.2f} px, i.e. a groove relief of {relief:.2f} px RMS beyond the noise "
-          f"({along_y.sum()} / {along_x.sum()} pairs); height σ from the matching {zsig:.2f} px")
+    print(f"\nGroove relief on the substrate: RMS height difference of points 6–12 px apart "
+          f"along the grooves (y) {ry:.2f} px, across them (x) {rx:.2f} px, i.e. a groove "
+          f"relief of {relief:.2f} px RMS beyond the noise ({along_y.sum()} / {along_x.sum()} "
+          f"pairs); median height σ of the substrate points {np.median(zs_sub):.2f} px")
     if FIGURE:
         import matplotlib
 
         matplotlib.use("Agg")
         from semlab.plots import show_reference_surface
 
-        ax = show_reference_surface(*fig_args, unit="px", lim=8.0, title="pollen_pot1: heights "
-                                    "above the substrate")
+        ax = show_reference_surface(ims[ref_view], P[:, ref_view], z, ref.inliers, unit="px",
+                                    lim=8.0, title="pollen_pot1: heights above the "
+                                    "dominant flat surface")
         FIGURE.parent.mkdir(parents=True, exist_ok=True)
         ax.figure.savefig(FIGURE, dpi=80, bbox_inches="tight")
         print(f"\nfigure: {FIGURE.relative_to(ROOT)}")
