@@ -159,7 +159,8 @@ class AnalysisConfig:
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
         own = {"stereo": ("stereo_method", "n_boot", "seed"),
-               "heightmap": ("heightmap_roi", "heightmap_method"), "tracking": ("track_method", "track_target_sigma_px"),
+               "heightmap": ("heightmap_roi", "heightmap_method"),
+               "tracking": ("track_method", "track_target_sigma_px"),
                "strain": ("gauge_length_px",)}
         needs = {"stereo": ("stereo",), "heightmap": ("stereo", "heightmap"),
                  "tracking": ("stereo", "tracking"),

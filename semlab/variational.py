@@ -95,6 +95,11 @@ class VariationalParams:
         bias ``A⁻¹ Gᵀ W G d̂`` (default: the pull of the smoothing at band walls, which the
         posterior of a locally linearised model misses), the posterior alone, the noise only
         (``A⁻¹ D A⁻¹``, misses the smoothing bias) or the noise plus the bias.
+    max_step_px : float
+        Largest change of the parallax per warp, pixels (0: no limit).
+    prior_order : {1, 2}
+        Huber prior on first (default) or second differences (scale = rule / window;
+        experimental: its conjugate gradients converge slowly, so its 1σ comes out too small).
     """
 
     levels: int = 1
@@ -401,6 +406,8 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     from .noise import image_noise_sigma
 
     prm = params or VariationalParams()
+    if prm.prior_order not in (1, 2):
+        raise SemlabError(f"VariationalParams.prior_order must be 1 or 2, got {prm.prior_order!r}")
     if prm.sigma_mode not in ("posterior", "noise", "noise+bias", "posterior+bias"):
         raise SemlabError(f"VariationalParams.sigma_mode must be 'posterior', 'noise', "
                           f"'noise+bias' or 'posterior+bias', got {prm.sigma_mode!r}")

@@ -111,6 +111,10 @@ def test_bad_inputs_raise():
         va.refine_parallax(img, img, zero, np.ones((3, 3), bool))
     with pytest.raises(SemlabError, match="roi"):
         va.refine_parallax(img, img, zero, roi=(10, 10, 5, 20))
+    with pytest.raises(SemlabError, match="prior_order"):
+        va.refine_parallax(img, img, zero, params=va.VariationalParams(prior_order=3))
+    with pytest.raises(SemlabError, match="sigma_mode"):
+        va.refine_parallax(img, img, zero, params=va.VariationalParams(sigma_mode="exact"))
 
 
 def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo():
