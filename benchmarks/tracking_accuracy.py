@@ -58,7 +58,7 @@ def sample5(rows, speed):
         v = tr.valid[0]
         d_ = tr.xy[1, v] - tr.xy[0, v]
         e = d_ - true
-        label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20)"
+        label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20, 0.8 px smoothing)"
                           if "target_sigma_px" in kw else
                           f" (h={kw['subset_half_window']})" if kw else
                           (" (h=10)" if method == "subset" else " (win 21)"))
@@ -183,7 +183,8 @@ def _synthetic_scene(rows, speed, scene_seed, load, make_experiment, csv):
             dt = time.perf_counter() - t0
             err = np.linalg.norm(tr.xy - true, axis=2)
             v0 = tr.valid[0]
-            label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20)" if kw else "")
+            label = method + (f" (target σ {kw['target_sigma_px']} px, h 10-20, 0.8 px "
+                              "smoothing)" if kw else "")
             rows.append((f"(d) synth series seed {scene_seed} ({F} frames {w}x{h}), {label}",
                          len(seeds),
                          f"{tr.valid[:-1].mean():.3f} (frame 0: {v0.mean():.3f})", "-",
