@@ -435,10 +435,12 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     backward_px : float or None
         Forward–backward check: each accepted point is matched back from the view to the
         reference (IC-GN started at the reference position with the inverse warp) and
-        marked invalid when it does not return to within ``max(backward_px, 3 √2 σ)``
-        pixels, σ the point's predicted x error in that view (the distance holds the random
-        errors of both matches; a second IC-GN pass over the accepted points; None skips
-        it). It removes points whose match
+        marked invalid when it does not return to within ``backward_px`` pixels (a second
+        IC-GN pass over the accepted points; None skips it; points of the epipolar stage
+        are matched back along the epipolar direction). A threshold growing with each
+        point's σ (``max(backward_px, 3√2 σ)``) tripled the accepted grain points of
+        ``pollen_pot1`` but let worse points in on the accuracy matrix (quick real:fei
+        cell: 58 % coverage at 0.99× DeepFlow's RMSE instead of 37 % at 0.80×). It removes points whose match
         depends on the direction, e.g. subsets straddling occlusions or parallax edges.
     max_features : int
         At most this many sparse features per view (the strongest; they only fix the
@@ -730,14 +732,11 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
                                                  grid[idx[k]], warp_j[idx[k]], int(h), sm,
                                                  cc, rc, max_iter, tol_px,
                                                  direction=e_j if one_d else None)
-            # the distance holds the random errors of both matches: 3 σ of their difference
-            s_j = sig_x[idx, j]
-            thr_fb = np.maximum(backward_px, 3 * np.sqrt(2) * np.where(np.isfinite(s_j), s_j, 0))
-            bad = ~(fb_d <= thr_fb)
-            for i, dd, tt in zip(idx[bad], fb_d[bad], thr_fb[bad]):
+            bad = ~(fb_d <= backward_px)
+            for i, dd in zip(idx[bad], fb_d[bad]):
                 reason[i] = (f"view {j}: forward–backward mismatch "
                              + ("(backward match failed)" if np.isnan(dd) else
-                                f"{dd:.2f} px > max(backward_px, 3√2 σ) = {tt:.2f} px"))
+                                f"{dd:.2f} px > backward_px {backward_px}"))
             valid[idx[bad]] = False
     if multiview_px is not None and v >= 3 and valid.sum() >= 8:
         mres, _ = _multiview_residual(out, ref, valid, seed=seed)
