@@ -232,8 +232,11 @@ def surface_heights(pts, tilt_deg, pixel_size_um, sigma_px=None, n_boot=0, seed=
         Stage tilt of each view about the image y axis, degrees.
     pixel_size_um : float
         Pixel size, µm/px.
-    sigma_px : float or (N,) array, optional
-        1σ matching error of each point (pixels); None: 0.5 px (a hand click).
+    sigma_px : float, (N,) or (N, V) array, optional
+        1σ error of each point's x coordinate in every view (pixels); None: 0.5 px (a hand
+        click, in every view). The σ of :func:`match_views` is that of the disparity (the
+        reference-view position is exact): pass ``view_sigmas(sigma_px, V, matched)`` (N, V)
+        so that it is not counted in the reference view too.
     n_boot : int
         Bootstrap resamples of the plane and offsets added to the error bars (0: none).
     seed : int
@@ -270,8 +273,12 @@ def surface_heights(pts, tilt_deg, pixel_size_um, sigma_px=None, n_boot=0, seed=
     from . import surface
 
     pts = np.asarray(pts, float)
-    sig = np.full(len(pts), RAW_CLICK_SIGMA_PX) if sigma_px is None else np.broadcast_to(
-        np.asarray(sigma_px, float), (len(pts),))
+    if sigma_px is None:
+        sig = np.full(len(pts), RAW_CLICK_SIGMA_PX)
+    elif np.ndim(sigma_px) == 2:
+        sig = np.asarray(sigma_px, float)
+    else:
+        sig = np.broadcast_to(np.asarray(sigma_px, float), (len(pts),))
     xyz, z_err, ref = _heights_and_reference(pts, tilt_deg, pixel_size_um, sig, tilt_axis_deg,
                                              region, three_points_px, seed)
     if n_boot:

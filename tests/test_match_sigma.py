@@ -114,3 +114,17 @@ def test_model_error_at_a_large_subset_sees_structure_beyond_the_neighbourhood()
     assert m[0] == pytest.approx(0.5 * share, rel=0.1)
     # a subset that does not reach the step: no model error
     assert model_error_at(q, xy, par, np.full(len(xy), 1e-3), 10, 7)[0] < 1e-3
+
+
+def test_surface_heights_takes_per_view_sigmas():
+    from semlab.camera import project_affine
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 6, (60, 2))
+    pts = np.stack([project_affine(np.column_stack([xy, 0.01 * xy[:, 0]]), t, 0.03)
+                    for t in (-5.0, 5.0)], axis=1)
+    both = pipeline.surface_heights(pts, [-5.0, 5.0], 0.03, sigma_px=0.02)
+    once = pipeline.surface_heights(pts, [-5.0, 5.0], 0.03,
+                                    sigma_px=pipeline.view_sigmas(np.full(60, 0.02), 2,
+                                                                  np.ones(60, bool)))
+    assert np.allclose(both.z_err_um / once.z_err_um, np.sqrt(2), rtol=1e-3)
