@@ -79,8 +79,8 @@ def test_bad_input_is_refused():
 
 def test_auto_match_finds_the_grooved_pollen_substrate():
     """pollen_pot1 (real): a 256×160 crop of the grooved substrate, views 0 and 1. The 2D
-    subsets diverge along the grooves (41 of 448 grid points accepted without the epipolar
-    stage, 133 with it; most of the rest fail the roughness test on the grooves' relief)."""
+    subsets diverge along the grooves (28 of 448 grid points accepted without the epipolar
+    stage, 131 with it; most of the rest fail the roughness test on the grooves' relief)."""
     from semlab.io import read_image
     from semlab.matching import auto_match
 
