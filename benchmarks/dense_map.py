@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semlab import experiment, heightmap, pipeline, synth, variational
+from semlab import experiment, fusion, heightmap, pipeline, synth, variational
 from semlab.matching import _norm8
 
 BORDER = 20
@@ -125,6 +125,10 @@ def run_scene(name, kw, tmp, params=None, subset=True):
         out["t_dense"] = time.perf_counter() - t0
         out.update(_compare(hm.z_um, hm.sigma_um, hm.valid, zd, truth, interior))
         out["sigma_scale"] = hm.parallax.sigma_scale
+        hf = fusion.fuse_heightmaps(hm, hv)
+        out["fused"] = _compare(hf.z_um, hf.sigma_um, hf.valid, zd, truth, interior)
+        out["fused"]["from_var"] = float(np.mean(hf.valid & (hf.sigma_um == hv.sigma_um)
+                                                 & ~np.isnan(hv.sigma_um)) / hf.valid.mean())
     return out
 
 
@@ -136,9 +140,12 @@ def main(argv=None):
                          "min_zncc 0.3 and the smoothing prior (radius 12 px)")
     ap.add_argument("--no-subset", action="store_true",
                     help="skip the subset map (variational and DeepFlow only)")
+    ap.add_argument("--scenes", type=int, nargs="+", help="indices of the scenes to run")
     args = ap.parse_args(argv)
     rows = []
     sc = scenes(args.quick)
+    if args.scenes:
+        sc = [sc[i] for i in args.scenes]
     params = None
     if args.low_texture:
         sc = [s for s in sc if "speckle" not in s[0]]
@@ -159,6 +166,12 @@ def main(argv=None):
                         f"{100 * r['in1']:.0f} %, 2σ {100 * r['in2']:.0f} %, σ scale "
                         f"{r['sigma_scale']:.2f}, times {r['t_sparse']:.0f}/{r['t_dense']:.0f}/"
                         f"{r['t_deep']:.0f} s")
+            if subset:
+                f = r["fused"]
+                msg += (f"; min-σ fusion: measured {100 * f['measured']:.1f} %, "
+                        f"{f['ours_nm']:.1f} nm vs DeepFlow {f['deep_nm']:.1f} nm (ratio "
+                        f"{f['ratio']:.2f}), 1σ/2σ {100 * f['in1']:.0f}/{100 * f['in2']:.0f} %, "
+                        f"{100 * f['from_var']:.0f} % from variational")
             print(msg, flush=True)
     if subset:
         print("\n| scene | measured interior | semlab RMSE | DeepFlow RMSE (same pixels) | ratio "
@@ -168,6 +181,15 @@ def main(argv=None):
             print(f"| {r['scene']} | {100 * r['measured']:.1f} % | {r['ours_nm']:.1f} nm | "
                   f"{r['deep_nm']:.1f} nm | {r['ratio']:.2f} | {100 * r['in1']:.0f} / "
                   f"{100 * r['in2']:.0f} % | {r['t_dense']:.0f} s |")
+    if subset:
+        print("\n| scene | measured interior | min-σ fusion RMSE | DeepFlow RMSE (same pixels) "
+              "| ratio | within 1σ / 2σ | from variational |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            f = r["fused"]
+            print(f"| {r['scene']} | {100 * f['measured']:.1f} % | {f['ours_nm']:.1f} nm | "
+                  f"{f['deep_nm']:.1f} nm | {f['ratio']:.2f} | {100 * f['in1']:.0f} / "
+                  f"{100 * f['in2']:.0f} % | {100 * f['from_var']:.0f} % |")
     print("\n| scene | measured interior | variational RMSE | DeepFlow RMSE (same pixels) | ratio "
           "| within 1σ / 2σ | time |")
     print("|---|---|---|---|---|---|---|")

@@ -1,0 +1,77 @@
+"""Min-σ fusion of two dense height maps (semlab.fusion)."""
+
+import numpy as np
+import pytest
+
+from semlab.errors import SemlabError
+from semlab.fusion import fuse_heightmaps, min_sigma_choice
+from semlab.heightmap import HeightMap
+
+
+def _two_maps(shape=(64, 96), seed=0):
+    """Truth 0; map a is sharp on the left half, map b on the right, σ telling so."""
+    rng = np.random.default_rng(seed)
+    left = np.zeros(shape, bool)
+    left[:, : shape[1] // 2] = True
+    s_a = np.where(left, 0.01, 0.10)
+    s_b = np.where(left, 0.10, 0.01)
+    z_a = rng.normal(0, 1, shape) * s_a
+    z_b = rng.normal(0, 1, shape) * s_b
+    return z_a, s_a, z_b, s_b, left
+
+
+def _rms(a):
+    return float(np.sqrt(np.mean(a ** 2)))
+
+
+def test_min_sigma_choice_takes_the_sharper_map_on_each_part():
+    z_a, s_a, z_b, s_b, left = _two_maps()
+    ok = np.ones(left.shape, bool)
+    z, s, valid, pick_b = min_sigma_choice(z_a, s_a, ok, z_b, s_b, ok)
+    assert valid.all()
+    np.testing.assert_array_equal(pick_b, ~left)
+    # either map alone is ~0.07 RMS (half its pixels at 0.1); the fusion is ~0.01
+    assert _rms(z) < 0.015
+    assert _rms(z_a) > 0.05 and _rms(z_b) > 0.05
+    np.testing.assert_allclose(s, 0.01, rtol=1e-6)
+    # the kept σ is honest: about 68 % of the errors within 1σ
+    assert 0.6 < np.mean(np.abs(z) < s) < 0.76
+
+
+def test_min_sigma_choice_fills_from_the_other_map_where_one_is_missing():
+    z_a, s_a, z_b, s_b, left = _two_maps()
+    v_a = np.ones(left.shape, bool)
+    v_a[:, :8] = False                        # a not measured on its sharp strip
+    z_a = np.where(v_a, z_a, np.nan)
+    v_b = np.ones(left.shape, bool)
+    v_b[:, -8:] = False                       # b not measured on its sharp strip
+    v_b[:4, :8] = False                       # neither measured in one corner
+    z, s, valid, pick_b = min_sigma_choice(z_a, s_a, v_a, z_b, s_b, v_b)
+    assert not valid[:4, :8].any() and np.isnan(z[:4, :8]).all()
+    assert pick_b[4:, :8].all()               # only b measured there
+    assert not pick_b[:, -8:].any()           # only a measured there
+    np.testing.assert_array_equal(z[4:, :8], z_b[4:, :8].astype(np.float32))
+    assert valid.sum() == valid.size - 32
+
+
+def test_min_sigma_choice_rejects_different_grids():
+    z = np.zeros((8, 8))
+    with pytest.raises(SemlabError, match="same pixel grid"):
+        min_sigma_choice(z, z + 1, z == 0, z[:4], z[:4] + 1, z[:4] == 0)
+
+
+def _hm(z, s, roi):
+    return HeightMap(z_um=z.astype(np.float32), sigma_um=s.astype(np.float32),
+                     valid=np.isfinite(z), pixel_size_um=0.1, roi=roi, parallax=None,
+                     notes=["made in a test"])
+
+
+def test_fuse_heightmaps_keeps_roi_and_notes_and_checks_roi():
+    z_a, s_a, z_b, s_b, left = _two_maps()
+    roi = (0, 0, left.shape[1], left.shape[0])
+    hf = fuse_heightmaps(_hm(z_a, s_a, roi), _hm(z_b, s_b, roi))
+    assert hf.roi == roi and hf.valid.all()
+    assert _rms(hf.z_um) < 0.015
+    assert "made in a test" in hf.notes[0] and "50.0 % of the measured pixels" in hf.notes[-1]
+    with pytest.raises(SemlabError, match="same heightmap_roi"):
+        fuse_heightmaps(_hm(z_a, s_a, roi), _hm(z_b, s_b, (1, 0) + roi[2:]))
