@@ -20,7 +20,11 @@ sub-pixel subset matching (:mod:`semlab.subset`, ZNCC search then IC-GN with ZNS
 (:mod:`semlab.match_prior`: features, global affine, dense flow), grid matching
 (:func:`semlab.adaptive.adaptive_icgn` or fixed subsets, :mod:`semlab.match_band`), and
 the filters (:mod:`semlab.match_filters`); all its parameters are one frozen
-:class:`AutoMatchParams`, recorded in the result.
+:class:`AutoMatchParams`, recorded in the result. Its body calls the private stages in
+order on one :class:`_AutoState`: ``_stage_setup`` (checks, grid), per view
+``_stage_prior``, ``_stage_texture`` (first view), ``_stage_guess``, ``_stage_grid_match``
+(IC-GN, band-aware, epipolar) and ``_stage_record``, then ``_filter_consistency``,
+``_filter_roughness``, ``_filter_backward``, ``_filter_multiview`` and ``_stage_result``.
 
 Conventions: images are 2D arrays indexed ``[row, col]``; points are ``(x, y)`` pixels,
 x right, y down, origin at the centre of the top-left pixel. ``pts`` arrays are
@@ -29,7 +33,8 @@ x right, y down, origin at the centre of the top-left pixel. ``pts`` arrays are
 
 from __future__ import annotations
 
-from dataclasses import astuple, dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -277,39 +282,94 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         If no global affine map is found or the grid is empty.
     """
     params = _auto_params(params, overrides)
-    (ref_view, spacing_px, detector, ratio, half_window, min_zncc, max_points, seed, search_px,
-     smooth_sigma_px, consistency_px, band_aware, band_half_width_px, kappa, max_roughness_px,
-     dense_init, wide_search_px, min_texture_snr, multiview_px, max_iter, tol_px, max_features,
-     backward_px, dense_prior_below, target_sigma_px, max_half_window,
-     epipolar) = astuple(params)
+    st = _stage_setup(images, params)
+    for j in range(st.v):
+        if j == st.ref:
+            continue
+        view = _stage_prior(st, j, features)
+        if st.work is None:
+            _stage_texture(st, view)
+        if len(st.work) == 0:       # every point flagged "low texture"
+            break
+        _stage_guess(st, view)
+        _stage_grid_match(st, view, progress)
+        _stage_record(st, view)
+    _filter_consistency(st)
+    _filter_roughness(st)
+    _filter_backward(st)
+    _filter_multiview(st)
+    return _stage_result(st, progress)
+
+
+@dataclass
+class _AutoState:
+    """What the stages of :func:`auto_match` share: the inputs, the grid and the arrays of
+    the result being filled in (``(n, v, ...)``: n grid points, v views)."""
+
+    params: AutoMatchParams
+    ims: list
+    v: int
+    ref: int
+    grid: np.ndarray            # (n, 2) reference-view (x, y) pixels
+    gidx: np.ndarray            # (n,) index of each point in the full grid
+    out: np.ndarray             # (n, v, 2) matched positions
+    zn: np.ndarray              # (n, v) ZNCC
+    sig_x: np.ndarray           # (n, v) noise σ of the match
+    sig_ap: np.ndarray          # sig_x with the a posteriori variance factor
+    valid: np.ndarray
+    reason: np.ndarray
+    side: np.ndarray            # (n,) subset side, pixels
+    epi: np.ndarray             # (n, v) matched along the epipolar direction only
+    noise0: float
+    eps: float
+    sub_std: np.ndarray
+    ref8: np.ndarray
+    smooth_sigma_px: float = None
+    ref_coef: np.ndarray = None
+    work: np.ndarray = None     # indices of the textured grid points
+    gw: np.ndarray = None       # their positions
+    resid: dict = field(default_factory=dict)      # view -> (parallax, cross-parallax)
+    curved: set = field(default_factory=set)       # views matched with the dense prior
+    ref_cache: dict = field(default_factory=dict)
+    fwd_state: dict = field(default_factory=dict)  # view -> state of the backward check
+    model_x: np.ndarray = None  # (n, v) model error
+
+    @property
+    def n(self):
+        return len(self.grid)
+
+
+def _stage_setup(images, params):
+    """Check the parameters and images, place the grid, allocate the result arrays."""
+    p = params
     ims = _check_images(images)
     v = len(ims)
-    ref = _check_ref_view(ref_view, v)
-    if detector not in ("sift", "shi-tomasi", "both"):
-        raise SemlabError(f"detector must be 'sift', 'shi-tomasi' or 'both', got {detector!r}")
-    if not 0 < ratio < 1:
-        raise SemlabError(f"ratio must be in (0, 1), got {ratio!r}")
-    if not spacing_px > 0:
-        raise SemlabError(f"spacing_px must be > 0, got {spacing_px!r}")
-    if smooth_sigma_px is not None and not smooth_sigma_px >= 0:
-        raise SemlabError(f"smooth_sigma_px must be None or >= 0, got {smooth_sigma_px!r}")
-    if backward_px is not None and not backward_px > 0:
-        raise SemlabError(f"backward_px must be None or > 0 pixels, got {backward_px!r}")
-    if not min_texture_snr >= 0:
-        raise SemlabError(f"min_texture_snr must be >= 0, got {min_texture_snr!r}")
+    ref = _check_ref_view(p.ref_view, v)
+    if p.detector not in ("sift", "shi-tomasi", "both"):
+        raise SemlabError(f"detector must be 'sift', 'shi-tomasi' or 'both', got {p.detector!r}")
+    if not 0 < p.ratio < 1:
+        raise SemlabError(f"ratio must be in (0, 1), got {p.ratio!r}")
+    if not p.spacing_px > 0:
+        raise SemlabError(f"spacing_px must be > 0, got {p.spacing_px!r}")
+    if p.smooth_sigma_px is not None and not p.smooth_sigma_px >= 0:
+        raise SemlabError(f"smooth_sigma_px must be None or >= 0, got {p.smooth_sigma_px!r}")
+    if p.backward_px is not None and not p.backward_px > 0:
+        raise SemlabError(f"backward_px must be None or > 0 pixels, got {p.backward_px!r}")
+    if not p.min_texture_snr >= 0:
+        raise SemlabError(f"min_texture_snr must be >= 0, got {p.min_texture_snr!r}")
     hgt, wid = ims[0].shape
-    margin = half_window + search_px + 3
-    xs = np.arange(margin, wid - margin, spacing_px, dtype=float)
-    ys = np.arange(margin, hgt - margin, spacing_px, dtype=float)
+    margin = p.half_window + p.search_px + 3
+    xs = np.arange(margin, wid - margin, p.spacing_px, dtype=float)
+    ys = np.arange(margin, hgt - margin, p.spacing_px, dtype=float)
     if len(xs) == 0 or len(ys) == 0:
         raise GeometryError(f"images of {wid}×{hgt} px are too small for half_window="
-                            f"{half_window} and search_px={search_px}")
+                            f"{p.half_window} and search_px={p.search_px}")
     gx, gy = np.meshgrid(xs, ys)
     grid = np.column_stack([gx.ravel(), gy.ravel()])
     gidx = np.arange(len(grid))
-    if max_points is not None and len(grid) > max_points:
-        rng = np.random.default_rng(seed)
-        gidx = np.sort(rng.choice(len(grid), int(max_points), replace=False))
+    if p.max_points is not None and len(grid) > p.max_points:
+        rng = np.random.default_rng(p.seed)
+        gidx = np.sort(rng.choice(len(grid), int(p.max_points), replace=False))
         grid = grid[gidx]
     n = len(grid)
 
@@ -317,251 +377,310 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     out[:, ref] = grid
     zn = np.ones((n, v))
     zn[:, [j for j in range(v) if j != ref]] = -1.0
-    sig_x = np.zeros((n, v))
-    sig_ap = np.zeros((n, v))     # sig_x with the a posteriori variance factor
-    valid = np.ones(n, bool)
-    reason = np.full(n, "", dtype=object)
-    side = np.zeros(n, int)
-    epi = np.zeros((n, v), bool)     # matched along the epipolar direction only
-
     noise0 = image_noise_sigma(ims[ref])   # white-noise estimate, regulariser of the flow
     eps = max(noise0, 1e-3 * float(np.ptp(ims[ref])) + 1e-12)
-    sub_std = _subset_std(ims[ref], half_window, grid)
-    work = None
+    sm = p.smooth_sigma_px
+    return _AutoState(
+        params=p, ims=ims, v=v, ref=ref, grid=grid, gidx=gidx, out=out, zn=zn,
+        sig_x=np.zeros((n, v)), sig_ap=np.zeros((n, v)), valid=np.ones(n, bool),
+        reason=np.full(n, "", dtype=object), side=np.zeros(n, int),
+        epi=np.zeros((n, v), bool), noise0=noise0, eps=eps,
+        sub_std=_subset_std(ims[ref], p.half_window, grid), ref8=_to_uint8(ims[ref]),
+        smooth_sigma_px=sm, ref_coef=None if sm is None else prefilter_image(ims[ref], sm))
 
-    ref8 = _to_uint8(ims[ref])
-    ref_coef = None if smooth_sigma_px is None else prefilter_image(ims[ref], smooth_sigma_px)
-    resid = {}
-    curved = set()            # views matched with the dense prior (tall objects)
-    ref_cache = {}
-    fwd_state = {}
-    for j in range(v):
-        if j == ref:
-            continue
-        if features is not None and j in features:       # given (tiles: the whole view's)
-            src, dst = (np.asarray(a, float) for a in features[j])
-        else:
-            src, dst = match_features(ref8, _to_uint8(ims[j]), ratio=ratio, detector=detector,
-                                      n_max=max_features, cache=ref_cache)
-        if len(src) < 6:
-            raise GeometryError(f"only {len(src)} feature matches between views {ref} and {j}; "
-                                "the views do not overlap or have too little texture")
-        M, inl = _robust_affine(src, dst, 3.0, seed)
-        res = dst[inl] - _apply_affine(M, src[inl])
-        # parallax direction = principal direction of the inlier residuals
-        rc = res - np.median(res, axis=0)
-        _, _, vt = np.linalg.svd(rc, full_matrices=False)
-        e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
-        eperp = np.array([-e[1], e[0]])
-        keep = np.abs(rc @ eperp) < 1.0
-        s_src = src[inl][keep]
-        if len(s_src) < 6:
-            raise GeometryError(f"too few consistent feature matches between views {ref} and {j}")
-        s_dst = dst[inl][keep]
-        M = fit_affine(s_src, s_dst)
-        s_res = s_dst - _apply_affine(M, s_src)
-        L = M[:, :2] - np.eye(2)
-        grad = np.array([0, L[0, 0], L[0, 1], 0, L[1, 0], L[1, 1]])
-        # no global affine describes the pair when most matches disagree with it (a tall
-        # object): then the flow starts from a dense map interpolated from the matches
-        prior = M
-        if dense_init and inl.mean() < dense_prior_below:
-            try:
-                prior = _dense_prior(src, dst, ims[ref].shape, half_window)
-                curved.add(j)
-            except GeometryError:
-                prior = M
-        if dense_init:
-            warped, fwd, bwd = _flow_field(ims[ref], ims[j], prior, half_window, eps)
-        if work is None:
-            # texture test on the reference view, with the noise seen between the views
-            noise = _aligned_noise(ims[ref], warped, fwd, half_window, pts=grid) \
-                if dense_init else noise0
-            if dense_init:   # contrast of the image the noise is measured on (high-passed)
-                sub_std = _subset_std(_highpass(ims[ref], half_window), half_window, grid)
-            contrast = np.sqrt(np.maximum(sub_std ** 2 - noise ** 2, 0.0))
-            textured = contrast >= min_texture_snr * noise
-            noise_i = np.broadcast_to(noise, contrast.shape)
-            for i in np.flatnonzero(~textured):
-                reason[i] = (f"low texture: subset contrast {contrast[i]:.2f} < "
-                             f"min_texture_snr × noise = {min_texture_snr * noise_i[i]:.2f} "
-                             "(featureless background?)")
-            valid &= textured
-            work = np.flatnonzero(textured)
-            gw = grid[work]
-        nw = len(work)
-        if nw == 0:       # every point flagged "low texture"
-            break
-        if dense_init:
-            guess0, init_w, fb = _flow_guess(prior, fwd, bwd, gw, half_window)
-            # parallax direction from the dense field where the flow is reliable
-            d = guess0 - _apply_affine(M, gw)
-            rel = fb < 1.0
-            if rel.sum() >= 6:
-                dc = d[rel] - np.median(d[rel], axis=0)
-                _, _, vt = np.linalg.svd(dc, full_matrices=False)
-                e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
-                eperp = np.array([-e[1], e[0]])
-        else:
-            # smooth parallax field from the sparse inliers (median of nearest residuals)
-            kk = min(8, len(s_src))
-            _, nb = cKDTree(s_src).query(gw, k=kk)
-            par = np.median(s_res[nb.reshape(nw, kk)] @ e, axis=1)
-            guess0 = _apply_affine(M, gw) + par[:, None] * e
-            init_w = np.broadcast_to(grad, (nw, 6))
-            fb = np.zeros(nw)
-        guess = np.full((nw, 2), np.nan)
-        near = fb <= 1.0
-        for sel, rad in ((near, search_px), (~near, max(search_px, wide_search_px))):
-            if sel.any():
-                guess[sel], _ = zncc_match(ims[ref], ims[j], gw[sel], guess0[sel],
-                                           half_window=half_window, search_px=rad)
-        if smooth_sigma_px is None:
-            smooth_sigma_px = _choose_smoothing(ims[ref], ims[j], gw, guess, guess0, init_w,
-                                                half_window, min_zncc, seed)
-            ref_coef = prefilter_image(ims[ref], smooth_sigma_px)
-        cur_coef = prefilter_image(ims[j], smooth_sigma_px)
-        r, hw_j = _grid_icgn(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
-                             half_window, "affine", init_w, smooth_sigma_px, ref_coef,
-                             cur_coef, target_sigma_px, max_half_window, progress=progress,
-                             max_iter=max_iter, tol_px=tol_px)
-        side[work] = np.maximum(side[work], np.where(r.converged, 2 * hw_j + 1, 0))
-        ok_j = r.converged & (r.zncc >= min_zncc)
-        pts_j, sig_j, rr_j = r.pts, r.sigma_px[:, 0], r.residual_ratio
-        if band_aware and ok_j.sum() >= 6:
-            par = np.where(ok_j, (r.pts - _apply_affine(M, gw)) @ e, np.nan)
-            ang, _, _ = _band_orientation(gw, gw, par, 2.0 * half_window)
-            sel = np.flatnonzero(ok_j)
-            warp_sel = np.where(np.isfinite(r.warp[sel]), r.warp[sel], init_w[sel])
-            o_pts, o_sig, o_zn, o_rr = _oriented_refine(
-                ims[ref], ims[j], gw[sel], r.pts[sel], warp_sel, ang[sel], 2 * half_window,
-                band_half_width_px, smooth_sigma_px, ref_coef, cur_coef,
-                return_residual_ratio=True)
-            c_pts, c_sig, use = _combine(r.pts[sel], sig_j[sel], o_pts, o_sig, o_zn, min_zncc,
-                                         kappa)
-            pts_j, sig_j, rr_j = pts_j.copy(), sig_j.copy(), rr_j.copy()
-            pts_j[sel], sig_j[sel] = c_pts, c_sig
-            rr_j[sel] = np.where(use, o_rr, rr_j[sel])
-        zn_j = r.zncc
-        epi_j = np.zeros(nw, bool)
-        epi_coef = None
-        if epipolar and not ok_j.all():
-            pts_j, sig_j, rr_j, zn_j, ok_j, epi_j, r, epi_coef = _epipolar_stage(
-                ims[ref], ims[j], gw, M, e, np.where(np.isfinite(guess), guess, guess0),
-                pts_j, sig_j, rr_j, ok_j, r, half_window, grad, init_w, min_zncc,
-                smooth_sigma_px, ref_coef, cur_coef, max_iter, tol_px,
-                max(search_px, wide_search_px), seed)
-            epi[work, j] = epi_j
-        out[work, j] = pts_j
-        zn[work, j] = zn_j
-        sig_x[work, j] = sig_j
-        sig_ap[work, j] = aposteriori_sigma(sig_j, rr_j)
-        for k in np.flatnonzero(~ok_j):
-            i = work[k]
-            if not r.converged[k]:
-                why = r.reason[k]
-            else:
-                why = f"zncc {zn_j[k]:.2f} < min_zncc {min_zncc}"
-            if valid[i]:
-                reason[i] = f"view {j}: {why}"
-        valid[work[~ok_j]] = False
-        rr = out[:, j] - _apply_affine(M, grid)
-        resid[j] = (rr @ e, rr @ eperp)
-        if backward_px is not None:
-            warp_full = np.full((n, 6), np.nan)
-            warp_full[work] = np.where(np.isfinite(r.warp), r.warp, init_w)
-            hw_full = np.full(n, int(half_window))
-            hw_full[work] = np.where(hw_j > 0, hw_j, half_window)
-            fwd_state[j] = (cur_coef, warp_full, hw_full, e, epi_coef)
 
-    # local consistency of parallax and cross-parallax against grid neighbours (twice)
-    for _ in range(2 if consistency_px is not None else 0):
+def _stage_prior(st, j, features):
+    """Stages 1-2 (and the flow of 4) for view ``j``: feature matches, the global affine
+    map with its epipolar test, the parallax direction, the dense flow. Returns the view's
+    working namespace."""
+    p, ims, ref = st.params, st.ims, st.ref
+    if features is not None and j in features:       # given (tiles: the whole view's)
+        src, dst = (np.asarray(a, float) for a in features[j])
+    else:
+        src, dst = match_features(st.ref8, _to_uint8(ims[j]), ratio=p.ratio,
+                                  detector=p.detector, n_max=p.max_features,
+                                  cache=st.ref_cache)
+    if len(src) < 6:
+        raise GeometryError(f"only {len(src)} feature matches between views {ref} and {j}; "
+                            "the views do not overlap or have too little texture")
+    M, inl = _robust_affine(src, dst, 3.0, p.seed)
+    res = dst[inl] - _apply_affine(M, src[inl])
+    # parallax direction = principal direction of the inlier residuals
+    rc = res - np.median(res, axis=0)
+    _, _, vt = np.linalg.svd(rc, full_matrices=False)
+    e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
+    eperp = np.array([-e[1], e[0]])
+    keep = np.abs(rc @ eperp) < 1.0
+    s_src = src[inl][keep]
+    if len(s_src) < 6:
+        raise GeometryError(f"too few consistent feature matches between views {ref} and {j}")
+    s_dst = dst[inl][keep]
+    M = fit_affine(s_src, s_dst)
+    s_res = s_dst - _apply_affine(M, s_src)
+    L = M[:, :2] - np.eye(2)
+    grad = np.array([0, L[0, 0], L[0, 1], 0, L[1, 0], L[1, 1]])
+    # no global affine describes the pair when most matches disagree with it (a tall
+    # object): then the flow starts from a dense map interpolated from the matches
+    prior = M
+    if p.dense_init and inl.mean() < p.dense_prior_below:
+        try:
+            prior = _dense_prior(src, dst, ims[ref].shape, p.half_window)
+            st.curved.add(j)
+        except GeometryError:
+            prior = M
+    warped = fwd = bwd = None
+    if p.dense_init:
+        warped, fwd, bwd = _flow_field(ims[ref], ims[j], prior, p.half_window, st.eps)
+    return SimpleNamespace(j=j, M=M, e=e, eperp=eperp, grad=grad, prior=prior, s_src=s_src,
+                           s_res=s_res, warped=warped, fwd=fwd, bwd=bwd)
+
+
+def _stage_texture(st, view):
+    """Stage 3: the texture test on the reference view, with the noise seen between the
+    views (on the first view pair); sets ``st.work`` and ``st.gw``."""
+    p, ims, ref, grid = st.params, st.ims, st.ref, st.grid
+    noise = _aligned_noise(ims[ref], view.warped, view.fwd, p.half_window, pts=grid) \
+        if p.dense_init else st.noise0
+    if p.dense_init:   # contrast of the image the noise is measured on (high-passed)
+        st.sub_std = _subset_std(_highpass(ims[ref], p.half_window), p.half_window, grid)
+    contrast = np.sqrt(np.maximum(st.sub_std ** 2 - noise ** 2, 0.0))
+    textured = contrast >= p.min_texture_snr * noise
+    noise_i = np.broadcast_to(noise, contrast.shape)
+    for i in np.flatnonzero(~textured):
+        st.reason[i] = (f"low texture: subset contrast {contrast[i]:.2f} < "
+                        f"min_texture_snr × noise = {p.min_texture_snr * noise_i[i]:.2f} "
+                        "(featureless background?)")
+    st.valid &= textured
+    st.work = np.flatnonzero(textured)
+    st.gw = grid[st.work]
+
+
+def _stage_guess(st, view):
+    """Stages 4-5a: each textured point's initial position and warp (dense flow, or the
+    sparse prior), then the ZNCC search (wider where the flow is uncertain)."""
+    p, ims, ref, gw, j = st.params, st.ims, st.ref, st.gw, view.j
+    nw = len(gw)
+    if p.dense_init:
+        guess0, init_w, fb = _flow_guess(view.prior, view.fwd, view.bwd, gw, p.half_window)
+        # parallax direction from the dense field where the flow is reliable
+        d = guess0 - _apply_affine(view.M, gw)
+        rel = fb < 1.0
+        if rel.sum() >= 6:
+            dc = d[rel] - np.median(d[rel], axis=0)
+            _, _, vt = np.linalg.svd(dc, full_matrices=False)
+            view.e = vt[0] * np.sign(vt[0][0] if abs(vt[0][0]) > 1e-12 else 1.0)
+            view.eperp = np.array([-view.e[1], view.e[0]])
+    else:
+        # smooth parallax field from the sparse inliers (median of nearest residuals)
+        kk = min(8, len(view.s_src))
+        _, nb = cKDTree(view.s_src).query(gw, k=kk)
+        par = np.median(view.s_res[nb.reshape(nw, kk)] @ view.e, axis=1)
+        guess0 = _apply_affine(view.M, gw) + par[:, None] * view.e
+        init_w = np.broadcast_to(view.grad, (nw, 6))
+        fb = np.zeros(nw)
+    guess = np.full((nw, 2), np.nan)
+    near = fb <= 1.0
+    for sel, rad in ((near, p.search_px), (~near, max(p.search_px, p.wide_search_px))):
+        if sel.any():
+            guess[sel], _ = zncc_match(ims[ref], ims[j], gw[sel], guess0[sel],
+                                       half_window=p.half_window, search_px=rad)
+    view.guess0, view.init_w, view.guess = guess0, init_w, guess
+
+
+def _stage_grid_match(st, view, progress):
+    """Stages 5b-6b: pre-smoothing choice, IC-GN of the grid, band-aware thin subsets and
+    the epipolar stage for view ``view.j``."""
+    p, ims, ref, gw, j = st.params, st.ims, st.ref, st.gw, view.j
+    M, e, init_w, guess, guess0 = view.M, view.e, view.init_w, view.guess, view.guess0
+    nw = len(gw)
+    if st.smooth_sigma_px is None:
+        st.smooth_sigma_px = _choose_smoothing(ims[ref], ims[j], gw, guess, guess0, init_w,
+                                               p.half_window, p.min_zncc, p.seed)
+        st.ref_coef = prefilter_image(ims[ref], st.smooth_sigma_px)
+    sm, ref_coef = st.smooth_sigma_px, st.ref_coef
+    cur_coef = prefilter_image(ims[j], sm)
+    r, hw_j = _grid_icgn(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
+                         p.half_window, "affine", init_w, sm, ref_coef,
+                         cur_coef, p.target_sigma_px, p.max_half_window, progress=progress,
+                         max_iter=p.max_iter, tol_px=p.tol_px)
+    st.side[st.work] = np.maximum(st.side[st.work], np.where(r.converged, 2 * hw_j + 1, 0))
+    ok_j = r.converged & (r.zncc >= p.min_zncc)
+    pts_j, sig_j, rr_j = r.pts, r.sigma_px[:, 0], r.residual_ratio
+    if p.band_aware and ok_j.sum() >= 6:
+        par = np.where(ok_j, (r.pts - _apply_affine(M, gw)) @ e, np.nan)
+        ang, _, _ = _band_orientation(gw, gw, par, 2.0 * p.half_window)
+        sel = np.flatnonzero(ok_j)
+        warp_sel = np.where(np.isfinite(r.warp[sel]), r.warp[sel], init_w[sel])
+        o_pts, o_sig, o_zn, o_rr = _oriented_refine(
+            ims[ref], ims[j], gw[sel], r.pts[sel], warp_sel, ang[sel], 2 * p.half_window,
+            p.band_half_width_px, sm, ref_coef, cur_coef,
+            return_residual_ratio=True)
+        c_pts, c_sig, use = _combine(r.pts[sel], sig_j[sel], o_pts, o_sig, o_zn, p.min_zncc,
+                                     p.kappa)
+        pts_j, sig_j, rr_j = pts_j.copy(), sig_j.copy(), rr_j.copy()
+        pts_j[sel], sig_j[sel] = c_pts, c_sig
+        rr_j[sel] = np.where(use, o_rr, rr_j[sel])
+    zn_j = r.zncc
+    epi_j = np.zeros(nw, bool)
+    epi_coef = None
+    if p.epipolar and not ok_j.all():
+        pts_j, sig_j, rr_j, zn_j, ok_j, epi_j, r, epi_coef = _epipolar_stage(
+            ims[ref], ims[j], gw, M, e, np.where(np.isfinite(guess), guess, guess0),
+            pts_j, sig_j, rr_j, ok_j, r, p.half_window, view.grad, init_w, p.min_zncc,
+            sm, ref_coef, cur_coef, p.max_iter, p.tol_px,
+            max(p.search_px, p.wide_search_px), p.seed)
+        st.epi[st.work, j] = epi_j
+    view.r, view.hw_j, view.cur_coef, view.epi_coef = r, hw_j, cur_coef, epi_coef
+    view.pts_j, view.sig_j, view.rr_j, view.zn_j, view.ok_j = pts_j, sig_j, rr_j, zn_j, ok_j
+
+
+def _stage_record(st, view):
+    """Write view ``view.j``'s matches into the result arrays; keep its parallax residuals
+    for the filters and its state for the backward check."""
+    p, work, j, r = st.params, st.work, view.j, view.r
+    st.out[work, j] = view.pts_j
+    st.zn[work, j] = view.zn_j
+    st.sig_x[work, j] = view.sig_j
+    st.sig_ap[work, j] = aposteriori_sigma(view.sig_j, view.rr_j)
+    for k in np.flatnonzero(~view.ok_j):
+        i = work[k]
+        if not r.converged[k]:
+            why = r.reason[k]
+        else:
+            why = f"zncc {view.zn_j[k]:.2f} < min_zncc {p.min_zncc}"
+        if st.valid[i]:
+            st.reason[i] = f"view {j}: {why}"
+    st.valid[work[~view.ok_j]] = False
+    rr = st.out[:, j] - _apply_affine(view.M, st.grid)
+    st.resid[j] = (rr @ view.e, rr @ view.eperp)
+    if p.backward_px is not None:
+        warp_full = np.full((st.n, 6), np.nan)
+        warp_full[work] = np.where(np.isfinite(r.warp), r.warp, view.init_w)
+        hw_full = np.full(st.n, int(p.half_window))
+        hw_full[work] = np.where(view.hw_j > 0, view.hw_j, p.half_window)
+        st.fwd_state[j] = (view.cur_coef, warp_full, hw_full, view.e, view.epi_coef)
+
+
+def _filter_consistency(st):
+    """Stage 7a: local consistency of parallax and cross-parallax against grid neighbours
+    (twice)."""
+    p, valid, reason, grid = st.params, st.valid, st.reason, st.grid
+    for _ in range(2 if p.consistency_px is not None else 0):
         idx = np.flatnonzero(valid)
         if len(idx) < 4:
             break
-        for j, (pa, pe) in resid.items():
+        for j, (pa, pe) in st.resid.items():
             for name, val in (("parallax", pa), ("cross-parallax", pe)):
-                out_l = _local_outliers(grid[idx], val[idx], 8, consistency_px)
+                out_l = _local_outliers(grid[idx], val[idx], 8, p.consistency_px)
                 for i in idx[out_l]:
                     if valid[i]:
                         reason[i] = f"view {j}: {name} inconsistent with its neighbours"
                 valid[idx[out_l]] = False
-    others = [j for j in range(v) if j != ref]
+
+
+def _filter_roughness(st):
+    """Stage 7b: the model error of each point (the non-affine part of the parallax around
+    it) and the local planarity test (``max_roughness_px``)."""
+    p, valid, reason, grid, side, sig_x = st.params, st.valid, st.reason, st.grid, st.side, \
+        st.sig_x
+    others = [j for j in range(st.v) if j != st.ref]
     sigma = np.sqrt(np.mean(sig_x[:, others] ** 2, axis=1))
-    model_x = np.zeros((n, v))
-    if valid.sum() >= 12:
+    st.model_x = model_x = np.zeros((st.n, st.v))
+    if valid.sum() < 12:
+        return
+    idx = np.flatnonzero(valid)
+    thr = max(p.max_roughness_px or 0.0, 2.0 * float(np.median(sigma[idx])))
+    for j, (pa, _) in st.resid.items():
+        curved = j in st.curved
+        # with the dense prior (a tall object) the parallax is curved on the scale of the
+        # neighbourhood: test against local quadrics, which still reject steps
+        _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
+                                       quadratic=curved)
+        # the non-affine part of the parallax around each point: its model error
+        # the neighbourhood of each fit covers the point's subset (information-sized
+        # subsets grow past 12 grid neighbours)
+        hs = (side[idx] - 1) // 2
+        for h in np.unique(hs):
+            k_h = int(min(len(idx), max(12, min(64, round((2 * h + 1) ** 2
+                                                          / p.spacing_px ** 2)))))
+            rough_h = rough if k_h == 12 else _parallax_gradients(
+                grid[idx], pa[idx], k=k_h, return_residual=True, quadratic=curved)[1]
+            m = hs == h
+            model_x[idx[m], j] = model_error_from_fit(
+                grid[idx], rough_h, sig_x[idx, j], h, k_h, 6 if curved else 3)[m]
+        if p.max_roughness_px is None:
+            continue
+        # a surface rough all over (a pollen grain's reticulum) is not a steep flank:
+        # only roughness that stands out of the view's own distribution is rejected
+        med = float(np.median(rough))
+        thr_j = thr if med <= thr else \
+            max(thr, med + 4 * 1.4826 * float(np.median(np.abs(rough - med))))
+        bad = rough > thr_j
+        for i, rr in zip(idx[bad], rough[bad]):
+            if valid[i]:
+                reason[i] = (f"view {j}: parallax not locally planar (plane RMS {rr:.2f} px "
+                             f"> {thr_j:.2f} px: steep flank)")
+        valid[idx[bad]] = False
+
+
+def _filter_backward(st):
+    """Stage 8: the forward–backward test (``backward_px``), each point with its own subset
+    and shape function."""
+    p, valid, ims, ref = st.params, st.valid, st.ims, st.ref
+    if p.backward_px is None:
+        return
+    for j, (coef_j, warp_j, hw_full, e_j, epi_coef) in st.fwd_state.items():
         idx = np.flatnonzero(valid)
-        thr = max(max_roughness_px or 0.0, 2.0 * float(np.median(sigma[idx])))
-        for j, (pa, _) in resid.items():
-            # with the dense prior (a tall object) the parallax is curved on the scale of the
-            # neighbourhood: test against local quadrics, which still reject steps
-            _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
-                                           quadratic=j in curved)
-            # the non-affine part of the parallax around each point: its model error
-            # the neighbourhood of each fit covers the point's subset (information-sized
-            # subsets grow past 12 grid neighbours)
-            hs = (side[idx] - 1) // 2
-            for h in np.unique(hs):
-                k_h = int(min(len(idx), max(12, min(64, round((2 * h + 1) ** 2 / spacing_px ** 2)))))
-                rough_h = rough if k_h == 12 else _parallax_gradients(
-                    grid[idx], pa[idx], k=k_h, return_residual=True, quadratic=j in curved)[1]
-                m = hs == h
-                model_x[idx[m], j] = model_error_from_fit(
-                    grid[idx], rough_h, sig_x[idx, j], h, k_h, 6 if j in curved else 3)[m]
-            if max_roughness_px is None:
-                continue
-            # a surface rough all over (a pollen grain's reticulum) is not a steep flank:
-            # only roughness that stands out of the view's own distribution is rejected
-            med = float(np.median(rough))
-            thr_j = thr if med <= thr else \
-                max(thr, med + 4 * 1.4826 * float(np.median(np.abs(rough - med))))
-            bad = rough > thr_j
-            for i, rr in zip(idx[bad], rough[bad]):
-                if valid[i]:
-                    reason[i] = (f"view {j}: parallax not locally planar (plane RMS {rr:.2f} px "
-                                 f"> {thr_j:.2f} px: steep flank)")
-            valid[idx[bad]] = False
-    if backward_px is not None:
-        for j, (coef_j, warp_j, hw_full, e_j, epi_coef) in fwd_state.items():
-            idx = np.flatnonzero(valid)
-            if len(idx) == 0:
-                break
-            fb_d = np.full(len(idx), np.nan)
-            for h in np.unique(hw_full[idx]):      # the backward match uses the same subset
-                for one_d in (False, True):        # ... and the same shape function
-                    k = (hw_full[idx] == h) & (epi[idx, j] == one_d)
-                    if not k.any():
-                        continue
-                    sm, rc, cc = epi_coef if one_d else (smooth_sigma_px, ref_coef, coef_j)
-                    fb_d[k] = _backward_distance(ims[j], ims[ref], out[idx[k], j],
-                                                 grid[idx[k]], warp_j[idx[k]], int(h), sm,
-                                                 cc, rc, max_iter, tol_px,
-                                                 direction=e_j if one_d else None)
-            bad = ~(fb_d <= backward_px)
-            for i, dd in zip(idx[bad], fb_d[bad]):
-                reason[i] = (f"view {j}: forward–backward mismatch "
-                             + ("(backward match failed)" if np.isnan(dd) else
-                                f"{dd:.2f} px > backward_px {backward_px}"))
-            valid[idx[bad]] = False
-    if multiview_px is not None and v >= 3 and valid.sum() >= 8:
-        mres, _ = _multiview_residual(out, ref, valid, seed=seed)
-        r_in = mres[valid]
-        thr = max(np.median(r_in) + 4 * 1.4826 * np.median(np.abs(r_in - np.median(r_in))),
-                  multiview_px)
-        bad = valid & ~(mres <= thr)
-        for i in np.flatnonzero(bad):
-            reason[i] = (f"views inconsistent: x coordinates off the rank-2 tilt-series model "
-                         f"by {mres[i]:.2f} px > {thr:.2f} px")
-        valid &= ~bad
-    # error bars: noise σ with the a posteriori factor, plus the model error
-    sigma = np.sqrt(np.mean(sig_ap[:, others] ** 2 + model_x[:, others] ** 2, axis=1))
+        if len(idx) == 0:
+            break
+        fb_d = np.full(len(idx), np.nan)
+        for h in np.unique(hw_full[idx]):      # the backward match uses the same subset
+            for one_d in (False, True):        # ... and the same shape function
+                k = (hw_full[idx] == h) & (st.epi[idx, j] == one_d)
+                if not k.any():
+                    continue
+                sm, rc, cc = epi_coef if one_d else (st.smooth_sigma_px, st.ref_coef, coef_j)
+                fb_d[k] = _backward_distance(ims[j], ims[ref], st.out[idx[k], j],
+                                             st.grid[idx[k]], warp_j[idx[k]], int(h), sm,
+                                             cc, rc, p.max_iter, p.tol_px,
+                                             direction=e_j if one_d else None)
+        bad = ~(fb_d <= p.backward_px)
+        for i, dd in zip(idx[bad], fb_d[bad]):
+            st.reason[i] = (f"view {j}: forward–backward mismatch "
+                            + ("(backward match failed)" if np.isnan(dd) else
+                               f"{dd:.2f} px > backward_px {p.backward_px}"))
+        valid[idx[bad]] = False
+
+
+def _filter_multiview(st):
+    """Stage 7c: with 3 or more views, the rank-2 tilt-series test (``multiview_px``)."""
+    p, valid = st.params, st.valid
+    if p.multiview_px is None or st.v < 3 or valid.sum() < 8:
+        return
+    mres, _ = _multiview_residual(st.out, st.ref, valid, seed=p.seed)
+    r_in = mres[valid]
+    thr = max(np.median(r_in) + 4 * 1.4826 * np.median(np.abs(r_in - np.median(r_in))),
+              p.multiview_px)
+    bad = valid & ~(mres <= thr)
+    for i in np.flatnonzero(bad):
+        st.reason[i] = (f"views inconsistent: x coordinates off the rank-2 tilt-series model "
+                        f"by {mres[i]:.2f} px > {thr:.2f} px")
+    valid &= ~bad
+
+
+def _stage_result(st, progress):
+    """Error bars (noise σ with the a posteriori factor, plus the model error) and the
+    :class:`MatchResult`."""
+    others = [j for j in range(st.v) if j != st.ref]
+    valid, n = st.valid, st.n
+    sigma = np.sqrt(np.mean(st.sig_ap[:, others] ** 2 + st.model_x[:, others] ** 2, axis=1))
     sigma[~valid] = np.nan
     if progress:
         from tqdm.auto import tqdm
         tqdm.write(f"auto_match: {valid.sum()} of {n} grid points accepted")
-    return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma, reason=reason.astype(str),
-                       ref_view=ref, kind=np.full(n, "auto"), source_index=gidx,
-                       subset_px=side, params=params)
+    return MatchResult(pts=st.out, zncc=st.zn, valid=valid, sigma_px=sigma,
+                       reason=st.reason.astype(str), ref_view=st.ref, kind=np.full(n, "auto"),
+                       source_index=st.gidx, subset_px=st.side, params=st.params)
 
 
 def _epipolar_stage(ref_img, img, gw, M, e, start, pts_j, sig_j, rr_j, ok_j, r, half_window,
