@@ -2,23 +2,10 @@
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 from semlab import heightmap as hm, variational as va
 from semlab.errors import ImageError, SemlabError
-
-
-def _texture(shape, seed=0, sigma=1.2):
-    rng = np.random.default_rng(seed)
-    t = ndimage.gaussian_filter(rng.normal(size=shape), sigma)
-    return t / t.std()
-
-
-def _warp(img, dx):
-    """view1(x + dx(x), y) = img(x, y): sample img at x - dx (dx smooth or not)."""
-    hgt, wid = img.shape
-    yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
-    return ndimage.map_coordinates(img, [yy, xx - dx], order=3, mode="reflect")
+from test_heightmap import _texture, _warp
 
 
 def _pair(shape, dx, noise, seed=0, tex_sigma=1.2, gain=1.0):
