@@ -5,7 +5,7 @@ import pytest
 
 from semlab import heightmap as hm, variational as va
 from semlab.errors import ImageError, SemlabError
-from test_heightmap import _texture, _warp
+from test_heightmap import _texture, _warp, scene_pair  # noqa: F401 (a fixture)
 
 
 def _pair(shape, dx, noise, seed=0, tex_sigma=1.2, gain=1.0):
@@ -104,18 +104,11 @@ def test_bad_inputs_raise():
         va.refine_parallax(img, img, zero, params=va.VariationalParams(sigma_mode="exact"))
 
 
-def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo():
+def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo(scene_pair):
     from types import SimpleNamespace
 
-    from semlab.synth import make_scene, project_points, render
-
-    shape = (112, 144)
-    sc = make_scene(seed=2, size=shape)
-    rng = np.random.default_rng(5)
-    i0, x0, y0 = render(sc, shape, -5.0, rng=rng)
-    i1, _, _ = render(sc, shape, 5.0, rng=rng)
-    tx = project_points(sc, np.column_stack([x0.ravel(), y0.ravel()]), 5.0, shape)[:, 0]
-    tx = tx.reshape(shape)
+    i0, i1, tx, sc = scene_pair
+    shape = i0.shape
     p = va.variational_parallax(i0, i1)
     inner = (slice(12, -12), slice(12, -12))
     assert p.valid[inner].mean() > 0.99 and p.x1_px.shape == shape
@@ -148,15 +141,10 @@ def test_analysis_config_selects_the_method():
         semlab.AnalysisConfig(heightmap_method="deepflow")
 
 
-def test_tiled_by_the_run_tiler_agrees_with_one_call():
+def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair):
     from semlab import tiled_stereo as ts
-    from semlab.synth import make_scene, render
 
-    shape = (112, 144)
-    sc = make_scene(seed=2, size=shape)
-    rng = np.random.default_rng(5)
-    i0, _, _ = render(sc, shape, -5.0, rng=rng)
-    i1, _, _ = render(sc, shape, 5.0, rng=rng)
+    i0, i1, _, _ = scene_pair
     whole = va.variational_parallax(i0, i1)
     cal = {k: whole.calibration[k] for k in ("prior_scale_px", "epipolar", "noise_sigma")}
     tp = ts.tiled_parallax(i0, i1, params=va.VariationalParams(), method=va.variational_parallax,
