@@ -166,7 +166,6 @@ def main(argv=None):
                         f"{100 * r['in1']:.0f} %, 2σ {100 * r['in2']:.0f} %, σ scale "
                         f"{r['sigma_scale']:.2f}, times {r['t_sparse']:.0f}/{r['t_dense']:.0f}/"
                         f"{r['t_deep']:.0f} s")
-            if subset:
                 f = r["fused"]
                 msg += (f"; min-σ fusion: measured {100 * f['measured']:.1f} %, "
                         f"{f['ours_nm']:.1f} nm vs DeepFlow {f['deep_nm']:.1f} nm (ratio "
@@ -174,31 +173,24 @@ def main(argv=None):
                         f"{100 * f['from_var']:.0f} % from variational")
             print(msg, flush=True)
     if subset:
-        print("\n| scene | measured interior | semlab RMSE | DeepFlow RMSE (same pixels) | ratio "
-              "| within 1σ / 2σ | dense time |")
-        print("|---|---|---|---|---|---|---|")
-        for r in rows:
-            print(f"| {r['scene']} | {100 * r['measured']:.1f} % | {r['ours_nm']:.1f} nm | "
-                  f"{r['deep_nm']:.1f} nm | {r['ratio']:.2f} | {100 * r['in1']:.0f} / "
-                  f"{100 * r['in2']:.0f} % | {r['t_dense']:.0f} s |")
-    if subset:
-        print("\n| scene | measured interior | min-σ fusion RMSE | DeepFlow RMSE (same pixels) "
-              "| ratio | within 1σ / 2σ | from variational |")
-        print("|---|---|---|---|---|---|---|")
-        for r in rows:
-            f = r["fused"]
-            print(f"| {r['scene']} | {100 * f['measured']:.1f} % | {f['ours_nm']:.1f} nm | "
-                  f"{f['deep_nm']:.1f} nm | {f['ratio']:.2f} | {100 * f['in1']:.0f} / "
-                  f"{100 * f['in2']:.0f} % | {100 * f['from_var']:.0f} % |")
-    print("\n| scene | measured interior | variational RMSE | DeepFlow RMSE (same pixels) | ratio "
-          "| within 1σ / 2σ | time |")
+        _table(rows, "semlab", lambda r: r, "dense time", lambda r, m: f"{r['t_dense']:.0f} s")
+        _table(rows, "min-σ fusion", lambda r: r["fused"], "from variational",
+               lambda r, m: f"{100 * m['from_var']:.0f} %")
+    _table(rows, "variational", lambda r: r["var"], "time", lambda r, m: f"{r['t_var']:.0f} s")
+    return rows
+
+
+def _table(rows, label, metrics, last, last_cell):
+    """Print one markdown table: each scene's ``metrics(row)`` against DeepFlow on the same
+    pixels, with a last column ``last`` filled by ``last_cell(row, metrics(row))``."""
+    print(f"\n| scene | measured interior | {label} RMSE | DeepFlow RMSE (same pixels) | ratio "
+          f"| within 1σ / 2σ | {last} |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        v = r["var"]
-        print(f"| {r['scene']} | {100 * v['measured']:.1f} % | {v['ours_nm']:.1f} nm | "
-              f"{v['deep_nm']:.1f} nm | {v['ratio']:.2f} | {100 * v['in1']:.0f} / "
-              f"{100 * v['in2']:.0f} % | {r['t_var']:.0f} s |")
-    return rows
+        m = metrics(r)
+        print(f"| {r['scene']} | {100 * m['measured']:.1f} % | {m['ours_nm']:.1f} nm | "
+              f"{m['deep_nm']:.1f} nm | {m['ratio']:.2f} | {100 * m['in1']:.0f} / "
+              f"{100 * m['in2']:.0f} % | {last_cell(r, m)} |")
 
 
 if __name__ == "__main__":
