@@ -22,8 +22,8 @@ parallax field ``d(x, y)`` on the view-0 grid, found as the minimum of
   expectation–maximisation estimate of ``s`` was tried: on weak texture it collapses to
   over-smoothing, the grooves of slip bands vanish.)
 
-Minimisation: from the initial map (one level by default: coarse levels of the weak
-textures drifted; ``levels`` > 1 runs a factor-2 pyramid), several re-warps, the data term
+Minimisation: from the initial map at full resolution (a coarse-to-fine pyramid was tried:
+the coarse levels of weak textures drifted), several re-warps, the data term
 linearised about the current warp and both Huber functions by iteratively reweighted least
 squares; each linear system ``A d = b`` (``A = diag(w J²) + Gᵀ W G``, a weighted 2-D
 Laplacian plus the data precision) is solved by preconditioned conjugate gradients.
@@ -57,10 +57,8 @@ class VariationalParams:
 
     Attributes
     ----------
-    levels : int
-        Pyramid levels (factor 2); the finest is the image itself.
     warps : int
-        Re-warps (linearisations) per level.
+        Re-warps (linearisations).
     irls : int
         Reweightings (linear solves) per warp.
     norm_sigma_px : float
@@ -95,14 +93,11 @@ class VariationalParams:
         bias ``A⁻¹ Gᵀ W G d̂`` (default: the pull of the smoothing at band walls, which the
         posterior of a locally linearised model misses), the posterior alone, the noise only
         (``A⁻¹ D A⁻¹``, misses the smoothing bias) or the noise plus the bias.
-    max_step_px : float
-        Largest change of the parallax per warp, pixels (0: no limit).
     prior_order : {1, 2}
         Huber prior on first (default) or second differences (scale = rule / window;
         experimental: its conjugate gradients converge slowly, so its 1σ comes out too small).
     """
 
-    levels: int = 1
     warps: int = 5
     irls: int = 2
     norm_sigma_px: float = 5.0
@@ -118,7 +113,6 @@ class VariationalParams:
     seed: int = 0
     prior_scale_px: float | None = None
     prior_window_px: int = 15
-    max_step_px: float = 0.0
     prior_order: int = 1
     sigma_mode: str = "posterior+bias"
 
@@ -213,10 +207,6 @@ def _grad_y(a):
     return g
 
 
-def _down(a):
-    return ndimage.gaussian_filter(a, 1.0, mode="reflect")[::2, ::2]
-
-
 _STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0)}
 
 
@@ -289,8 +279,8 @@ def _huber_w(t, c):
     return np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))
 
 
-class _Level:
-    """One pyramid level: normalised views, their smoothed gradients, view-1 splines."""
+class _Pair:
+    """The normalised views, their smoothed gradients and view 1's splines."""
 
     def __init__(self, n0, s0, n1, s1, grad_sigma):
         self.n0, self.noise0, self.noise1 = n0, s0, s1
@@ -302,12 +292,12 @@ class _Level:
         self.cgx1 = ndimage.spline_filter(_grad_x(g1), order=3, mode="mirror")
         self.cgy1 = ndimage.spline_filter(_grad_y(g1), order=3, mode="mirror")
 
-    def warp(self, d, e, scale):
+    def warp(self, d, e):
         """Warped view 1, its derivative along ``d``, its noise σ and an inside mask."""
         hgt, wid = self.n0.shape
         yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
         xs = xx + d
-        ys = yy + e[0] / scale + e[1] * xx + e[2] * yy + e[3] * d
+        ys = yy + e[0] + e[1] * xx + e[2] * yy + e[3] * d
         h1, w1 = self.shape1
         inside = (xs >= 0) & (xs <= w1 - 1) & (ys >= 0) & (ys <= h1 - 1)
         c = [ys, xs]
@@ -464,34 +454,18 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     return par, sg, valid
 
 
-def _window_scale(lv, d, e, scale, window):
+def _window_scale(lv, d, e, window):
     """Prior scale from the noise: median data-only 1σ of the parallax of a window.
 
     ``1 / sqrt(Σ_window J² / σ²)``: neighbour parallaxes may differ by what a subset of
     ``window²`` pixels resolves, so features a subset sees are not smoothed away.
     """
-    _, J, sig, inside = lv.warp(d, e, scale)
+    _, J, sig, inside = lv.warp(d, e)
     D = np.where(inside, J * J / sig ** 2, 0.0)
-    w = max(1, int(round(window / scale)))
+    w = max(1, int(window))
     info = ndimage.uniform_filter(D, w, mode="reflect") * w * w
     good = info[inside]
     return float(np.median(1.0 / np.sqrt(np.maximum(good, 1e-12)))) if good.size else 1.0
-
-
-def _pyramid(n0, s0, n1, s1, prm):
-    levels = [(n0, s0, n1, s1)]
-    for _ in range(1, int(prm.levels)):
-        a, b, c, e = levels[-1]
-        if min(a.shape) < 16 or min(c.shape) < 16:
-            break
-        levels.append((_down(a), 0.5 * b[::2, ::2], _down(c), 0.5 * e[::2, ::2]))
-    return [_Level(*lv, prm.grad_sigma_px) for lv in levels]
-
-
-def _upsample(d, shape):
-    hgt, wid = shape
-    yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
-    return 2.0 * ndimage.map_coordinates(d, [yy / 2.0, xx / 2.0], order=1, mode="nearest")
 
 
 def _edge_weights(d, s, c, order=1):
@@ -520,48 +494,33 @@ def _samples(D, wh, wv, prm, rng, n, prior=True):
 
 
 def _solve(n0, s0, n1, s1, d, e, s, prm, info):
-    """Coarse-to-fine IRLS minimisation, then the variance of the estimate."""
-    pyr = _pyramid(n0, s0, n1, s1, prm)
-    nl = len(pyr)
-    scale = 2.0 ** (nl - 1)
+    """IRLS minimisation from the initial map, then the variance of the estimate."""
+    lv = _Pair(n0, s0, n1, s1, prm.grad_sigma_px)
     dl = d.copy()
-    for _ in range(nl - 1):
-        dl = _down(dl) * 0.5
-    k = 1.0
     rng = np.random.default_rng(prm.seed)
-    for li in range(nl - 1, -1, -1):
-        lv = pyr[li]
-        scale = 2.0 ** li
-        if dl.shape != lv.n0.shape:
-            dl = _upsample(dl, lv.n0.shape)
-        finest = li == 0
-        if s is None:
-            s = _window_scale(lv, dl, e, scale, prm.prior_window_px)
-            if prm.prior_order == 2:
-                s = s / prm.prior_window_px
-            info["prior_rule"] = f"data-only 1σ of a {prm.prior_window_px}-px window"
-        sl = s * np.sqrt(scale)             # random-walk prior: variance grows with the lag
-        for _ in range(prm.warps):
-            w1, J, sig, inside = lv.warp(dl, e, scale)
-            r0 = w1 - lv.n0
-            t = r0 / sig
-            if finest:
-                tin = t[inside]
-                k = max(0.25, 1.4826 * float(np.median(np.abs(tin - np.median(tin))))) \
-                    if tin.size else 1.0
-            dw = dl.copy()
-            for _ in range(prm.irls):
-                rl = r0 + J * (dl - dw)          # residual linearised about the warp
-                wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
-                              / (k * sig) ** 2, 0.0)
-                D = wd * J * J
-                wh, wv = _edge_weights(dl, sl, prm.smooth_huber, prm.prior_order)
-                dl = _cg(D, wh, wv, D * dw - wd * J * r0, dl, prm.cg_iter, prm.cg_tol)
-                if prm.max_step_px:
-                    dl = dw + np.clip(dl - dw, -prm.max_step_px, prm.max_step_px)
+    if s is None:
+        s = _window_scale(lv, dl, e, prm.prior_window_px)
+        if prm.prior_order == 2:
+            s = s / prm.prior_window_px
+        info["prior_rule"] = f"data-only 1σ of a {prm.prior_window_px}-px window"
+    k = 1.0
+    for _ in range(prm.warps):
+        w1, J, sig, inside = lv.warp(dl, e)
+        r0 = w1 - lv.n0
+        tin = (r0 / sig)[inside]
+        k = max(0.25, 1.4826 * float(np.median(np.abs(tin - np.median(tin))))) \
+            if tin.size else 1.0
+        dw = dl.copy()
+        for _ in range(prm.irls):
+            rl = r0 + J * (dl - dw)          # residual linearised about the warp
+            wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
+                          / (k * sig) ** 2, 0.0)
+            D = wd * J * J
+            wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
+            dl = _cg(D, wh, wv, D * dw - wd * J * r0, dl, prm.cg_iter, prm.cg_tol)
     # posterior variance at the last linearisation
-    w1, J, sig, inside = pyr[0].warp(dl, e, 1.0)
-    r0 = w1 - pyr[0].n0
+    w1, J, sig, inside = lv.warp(dl, e)
+    r0 = w1 - lv.n0
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
     wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
@@ -576,9 +535,9 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
     g = lambda a: ndimage.gaussian_filter(a, prm.norm_sigma_px, mode="reflect")  # noqa: E731
     with np.errstate(invalid="ignore", divide="ignore"):
-        info["_zncc"] = g(pyr[0].n0 * w1) / np.sqrt(g(pyr[0].n0 ** 2) * g(w1 ** 2))
+        info["_zncc"] = g(lv.n0 * w1) / np.sqrt(g(lv.n0 ** 2) * g(w1 ** 2))
     info.update(prior_scale_px=float(s), noise_factor=float(k),
-                levels=nl, median_sigma_px=float(np.median(np.sqrt(var))))
+                median_sigma_px=float(np.median(np.sqrt(var))))
     return dl, var, inside
 
 
