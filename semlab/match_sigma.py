@@ -57,7 +57,8 @@ def aposteriori_sigma(sigma_px, residual_ratio):
     return s * (f[:, None] if s.ndim == 2 else f)
 
 
-def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic=False):
+def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic=False,
+                         spacing_px=None):
     """Model error of affine subsets from the non-affine part of the parallax field, pixels.
 
     Parameters
@@ -74,6 +75,10 @@ def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic
         Neighbours of each local fit (the point included).
     quadratic : bool
         Fit local quadrics instead of planes (curved parallax of tall objects).
+    spacing_px : float, optional
+        Spacing of the points' grid. Given, each point's fit has
+        ``clip((2h+1)² / spacing², k, 64)`` neighbours, so that it covers the point's subset
+        (information-sized subsets grow past ``k`` grid neighbours).
 
     Returns
     -------
@@ -81,9 +86,21 @@ def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic
     (:func:`semlab.match_filters._parallax_gradients`).
     """
     xy = np.asarray(xy, float)
-    _, rough = _parallax_gradients(xy, np.asarray(parallax_px, float), k=k,
-                                   return_residual=True, quadratic=quadratic)
-    return model_error_from_fit(xy, rough, sigma_px, half_window, k, 6 if quadratic else 3)
+    par = np.asarray(parallax_px, float)
+    n = len(xy)
+    h = np.broadcast_to(np.asarray(half_window, float), (n,))
+    if spacing_px is None:
+        ks = np.full(n, min(k, n))
+    else:
+        ks = np.minimum(n, np.maximum(k, np.minimum(64, np.round((2 * h + 1) ** 2
+                                                                 / spacing_px ** 2))))
+    ks = ks.astype(int)
+    out = np.zeros(n)
+    for kk in np.unique(ks):
+        _, rough = _parallax_gradients(xy, par, k=kk, return_residual=True, quadratic=quadratic)
+        m = ks == kk
+        out[m] = model_error_from_fit(xy, rough, sigma_px, h, kk, 6 if quadratic else 3)[m]
+    return out
 
 
 def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):

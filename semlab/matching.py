@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from .adaptive import _grid_icgn
 from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
-from .match_sigma import aposteriori_sigma, model_error_from_fit
+from .match_sigma import aposteriori_sigma, parallax_model_error
 from .match_band import _band_orientation, _combine, _oriented_refine
 from .match_epipolar import epipolar_refine
 from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
@@ -597,17 +597,9 @@ def _filter_roughness(st):
         _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
                                        quadratic=curved)
         # the non-affine part of the parallax around each point: its model error
-        # the neighbourhood of each fit covers the point's subset (information-sized
-        # subsets grow past 12 grid neighbours)
-        hs = (side[idx] - 1) // 2
-        for h in np.unique(hs):
-            k_h = int(min(len(idx), max(12, min(64, round((2 * h + 1) ** 2
-                                                          / p.spacing_px ** 2)))))
-            rough_h = rough if k_h == 12 else _parallax_gradients(
-                grid[idx], pa[idx], k=k_h, return_residual=True, quadratic=curved)[1]
-            m = hs == h
-            model_x[idx[m], j] = model_error_from_fit(
-                grid[idx], rough_h, sig_x[idx, j], h, k_h, 6 if curved else 3)[m]
+        model_x[idx, j] = parallax_model_error(grid[idx], pa[idx], sig_x[idx, j],
+                                               (side[idx] - 1) // 2, quadratic=curved,
+                                               spacing_px=p.spacing_px)
         if p.max_roughness_px is None:
             continue
         # a surface rough all over (a pollen grain's reticulum) is not a steep flank:
