@@ -32,6 +32,7 @@ rendered with a smooth parallax field of ±4 px, the frames with a displacement 
     python benchmarks/memory_large.py                 # all four cases, ~5-10 min on 2 cores
     python benchmarks/memory_large.py --cases icgn_tiled --size 1536x2048
     python benchmarks/memory_large.py --run --map-roi 512       # semlab run, ~30 min shared
+    python benchmarks/memory_large.py --run --map-roi 0         # the whole 12.6 Mpx map, ~1 h
 """
 
 from __future__ import annotations
@@ -179,11 +180,14 @@ def run_semlab(size, map_roi, keep=None):
         exp = write_experiment(tmp / "exp", size)
         t_write = time.perf_counter() - t0
         c = int(map_roi)
-        x0, y0 = (w - c) // 2 // 16 * 16, (h - c) // 2 // 16 * 16
-        roi = [x0, y0, x0 + c, y0 + c]
         semlab = Path(sys.executable).with_name("semlab")
         cmd = [str(semlab), "run", str(exp), "--out", str(tmp / "out"), "--only", "04",
-               "--set", "n_boot=0", "--set", f"heightmap_roi={roi}"]
+               "--set", "n_boot=0"]
+        roi = [0, 0, w, h]   # map_roi 0: the whole view-0 grid
+        if c > 0:
+            x0, y0 = (w - c) // 2 // 16 * 16, (h - c) // 2 // 16 * 16
+            roi = [x0, y0, x0 + c, y0 + c]
+            cmd += ["--set", f"heightmap_roi={roi}"]
         t0 = time.perf_counter()
         proc = psutil.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         log = []
@@ -226,7 +230,7 @@ def run_semlab(size, map_roi, keep=None):
             e = _json.loads(line)
             if e.get("event") == "computed":
                 steps[e["step"]] = round(float(e["seconds"]), 1)
-        info = {"case": "semlab_run", "size": f"{h}x{w}, map {c}x{c} ROI",
+        info = {"case": "semlab_run", "size": f"{h}x{w}, " + (f"map {c}x{c} ROI" if c > 0 else "whole map"),
                 "stereo_s": steps.get("stereo"), "heightmap_s": steps.get("heightmap"),
                 "points": int(len(pts)), "map_valid": float(ok.mean()),
                 "map_rmse_nm": round(rmse_nm, 1), "write_s": round(t_write, 1),
@@ -350,7 +354,7 @@ def main(argv=None):
     p.add_argument("--run", action="store_true",
                    help="semlab run (stereo + heightmap) on a synthetic experiment instead")
     p.add_argument("--map-roi", type=int, default=512,
-                   help="side of the central height-map ROI of --run, px (default 512)")
+                   help="side of the central height-map ROI of --run, px (default 512; 0: whole map)")
     p.add_argument("--keep", default="", help="--run: copy the results to this folder")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.lower().split("x"))
