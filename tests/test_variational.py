@@ -72,6 +72,25 @@ def test_sigma_covers_the_error(flat_low_texture):
     assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
 
 
+def test_direct_solver_matches_converged_cg(flat_low_texture):
+    v0, v1, true, sub, x = flat_low_texture
+    p0 = np.where(sub.valid, sub.x1_px - x, np.nan)
+    tight = va.VariationalParams(cg_iter=3000, cg_tol=1e-10)
+    par_c, sig_c, _ = va.refine_parallax(v0, v1, p0, params=tight)
+    par_d, sig_d, _ = va.refine_parallax(v0, v1, p0, params=va.VariationalParams(
+        solver="direct"))
+    inner = (slice(12, -12), slice(12, -12))
+    assert np.nanmax(np.abs(par_d - par_c)[inner]) < 1e-3
+    # same posterior samples (one seed), so the σ agree closely too
+    assert np.nanmax(np.abs(sig_d / sig_c - 1)[inner]) < 1e-2
+    # the exact solve of A x = b of a second-order prior
+    rng = np.random.default_rng(0)
+    D, wh, wv = rng.random((30, 40)), rng.random((30, 38)), rng.random((28, 40))
+    b = rng.standard_normal(D.shape)
+    xs = va._factor(D, wh, wv)(b)
+    assert np.abs(D * xs + va._laplace_apply(xs, wh, wv) - b).max() < 1e-10
+
+
 def test_roi_is_a_window_of_the_whole_map(flat_low_texture):
     v0, v1, true, sub, x = flat_low_texture
     p0 = np.where(sub.valid, sub.x1_px - x, np.nan)
@@ -102,6 +121,8 @@ def test_bad_inputs_raise():
         va.refine_parallax(img, img, zero, params=va.VariationalParams(prior_order=3))
     with pytest.raises(SemlabError, match="sigma_mode"):
         va.refine_parallax(img, img, zero, params=va.VariationalParams(sigma_mode="exact"))
+    with pytest.raises(SemlabError, match="solver"):
+        va.refine_parallax(img, img, zero, params=va.VariationalParams(solver="lu"))
 
 
 def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo(scene_pair):
