@@ -1,7 +1,9 @@
 """Reference surface and tilt checks: a synthetic tall object, and the real pollen_pot1 series.
 
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
-      (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure)
+                                            [--backward-sigma-p=P]
+      (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure;
+      --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1)
 
 1. Synthetic: a textured bump 6 µm tall, ``6 (1 - r²/R²)²`` with R = 14 µm, off the
    centre of a flat substrate, seen at ±9° at 0.03 µm/px, 1024×768 px (the texture and
@@ -154,7 +156,9 @@ def pollen():
     ims = [read_image(POLLEN / f"pot1_0{i}.jpg").data for i in range(4)]
     ref_view = 0
     t = time.perf_counter()
-    m = auto_match(ims, ref_view=ref_view, progress=False)
+    bsp = [float(a.split("=", 1)[1]) for a in sys.argv if a.startswith("--backward-sigma-p=")]
+    m = auto_match(ims, ref_view=ref_view, progress=False,
+                   backward_sigma_p=bsp[0] if bsp else None)
     dt = time.perf_counter() - t
     r_all = _ellipse_r(m.pts[:, ref_view])
     on_grain, on_sub = r_all < 1.0, r_all > SUBSTRATE_R
@@ -165,7 +169,8 @@ def pollen():
     inside = np.all([(m.pts[:, ref_view, 0] + d[0] >= hw) & (m.pts[:, ref_view, 0] + d[0] < w - hw)
                      for d in shift], axis=0)
     print(f"\n### pollen_pot1 (real, 4 views, heights in pixels)\n\nsemlab.matching.auto_match "
-          f"(defaults, reference view {ref_view}, {dt:.0f} s): {m.valid.sum()} of {len(m.valid)} "
+          f"(defaults, backward_sigma_p={m.params.backward_sigma_p}, reference view {ref_view}, "
+          f"{dt:.0f} s): {m.valid.sum()} of {len(m.valid)} "
           f"grid points matched in all 4 views\n")
     print("| region | grid points | accepted | coverage | of those inside every view |")
     print("|---|---|---|---|---|")

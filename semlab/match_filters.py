@@ -60,10 +60,13 @@ def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
 
 
 def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
-                       img_coef, ref_coef, max_iter, tol_px, direction=None):
+                       img_coef, ref_coef, max_iter, tol_px, direction=None,
+                       return_sigma=False):
     """Distance (pixels) between ``pts_ref`` and the backward IC-GN match of ``pts`` (in
     ``img``) into ``ref_img``, started at ``pts_ref`` with the inverse of the forward warp
-    gradient (NaN where the backward match fails). With ``direction`` (the forward
+    gradient (NaN where the backward match fails). With ``return_sigma`` also the backward
+    match's predicted 1σ (pixels, the larger of its x and y, a posteriori: see
+    :func:`semlab.match_sigma.aposteriori_sigma`). With ``direction`` (the forward
     epipolar direction ``e``) the backward match is along the epipolar direction only
     (:func:`semlab.match_epipolar.epipolar_refine`, direction ``A⁻¹ e`` in the reference),
     as the forward one was."""
@@ -80,11 +83,17 @@ def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sig
         r = epipolar_refine(img, ref_img, pts, pts_ref, d, half_window, init,
                             max_iter=max_iter, tol_px=tol_px, smooth_sigma_px=smooth_sigma_px,
                             ref_prefiltered=img_coef, cur_prefiltered=ref_coef)
-        return np.hypot(*(r.pts - pts_ref).T)
-    r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
-                    smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
-                    cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)
-    return np.hypot(*(r.pts - pts_ref).T)
+    else:
+        r = icgn_refine(img, ref_img, pts, pts_ref, half_window=half_window, init_warp=init,
+                        smooth_sigma_px=smooth_sigma_px, ref_prefiltered=img_coef,
+                        cur_prefiltered=ref_coef, max_iter=max_iter, tol_px=tol_px)
+    dist = np.hypot(*(r.pts - pts_ref).T)
+    if not return_sigma:
+        return dist
+    from .match_sigma import aposteriori_sigma   # match_sigma imports this module
+
+    sig = np.fmax(r.sigma_px[:, 0], r.sigma_px[:, 1]) if len(r.pts) else np.zeros(0)
+    return dist, aposteriori_sigma(sig, r.residual_ratio)
 
 
 def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=0):

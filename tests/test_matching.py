@@ -454,6 +454,8 @@ def test_auto_match_params_recorded_and_checked(stereo):
         auto_match(ims, spacing=4, progress=False)
     with pytest.raises(SemlabError, match="AutoMatchParams"):
         auto_match(ims, {"spacing_px": 4}, progress=False)
+    with pytest.raises(SemlabError, match="backward_sigma_p"):
+        auto_match(ims, backward_sigma_p=1.5, progress=False)
     with pytest.raises(Exception):
         p.spacing_px = 4          # frozen
 
