@@ -304,7 +304,8 @@ def _icgn_task(ref_crop, cur_crop, pr, pg, kw):
     from .subset import icgn_refine
 
     r = icgn_refine(ref_crop, cur_crop, pr, pg, **kw)
-    return r.pts, r.warp, r.zncc, r.converged, r.n_iter, r.sigma_px, r.reason, r.residual_ratio
+    return (r.pts, r.warp, r.zncc, r.converged, r.n_iter, r.sigma_px, r.reason,
+            r.residual_ratio, r.noise_ratio)
 
 
 def _coef_mean(client, img, tiles, smooth_sigma_px, progress):
@@ -350,7 +351,9 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
         Keywords of ``icgn_refine`` (``half_window``, ``warp``, ``init_warp`` (N, 6),
         ``smooth_sigma_px``, ``subset_offsets``, ``ref_prefiltered``/``cur_prefiltered``
         (whole-image arrays, cropped here), ``max_iter``, ``tol_px``, ``noise_sigma``
-        (default: measured on the whole images, once), ``coef_offset``).
+        (default: measured as ``icgn_refine`` does, on the whole images and all the points'
+        residuals: the tiles run a second time with the lowered noise when the median
+        ``noise_ratio`` is below 1), ``coef_offset``).
 
     Returns
     -------
@@ -358,8 +361,8 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
         In the order of ``pts_ref``.
     """
     from .noise import image_noise_sigma
-    from .subset import (OUTSIDE, SubsetResult, _as_image, _as_points, _unsolved_outputs,
-                         icgn_refine)
+    from .subset import (OUTSIDE, SubsetResult, _as_image, _as_points, _calibration_factor,
+                         _unsolved_outputs, icgn_refine)
 
     if "progress" in icgn_kw:
         raise SemlabError("give progress= to tiled_icgn itself, not as an icgn_refine keyword")
@@ -382,8 +385,11 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
     ref_pf = kw.pop("ref_prefiltered", None)
     cur_pf = kw.pop("cur_prefiltered", None)
     margin = _SPLINE_MARGIN_PX + 3.0 * smooth
-    if kw.get("noise_sigma") is None:
-        # one noise level per image, measured on the whole image as icgn_refine does
+    calibrate = kw.get("noise_sigma") is None or (isinstance(kw["noise_sigma"], str)
+                                                  and kw["noise_sigma"] == "calibrated")
+    if calibrate:
+        # one noise level per image, measured on the whole image as icgn_refine does, then
+        # lowered to what all the tiles' residuals allow (second pass below)
         kw["noise_sigma"] = (image_noise_sigma(ref), image_noise_sigma(cur))
 
     finite = np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pg), 1)
@@ -422,19 +428,29 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
                       np.asarray(cur[cb[0]:cb[1], cb[2]:cb[3]]),
                       pr[m] - [rb[2], rb[0]], pg[m] - [cb[2], cb[0]], tkw)
 
+    out_q = np.full(n, np.nan)
     with dask_client(scheduler) as client:
         if "coef_offset" not in kw:
             kw["coef_offset"] = (float(np.mean(cur_pf)) if cur_pf is not None else
                                  _coef_mean(client, cur, plan_tiles(cur.shape, tile_px),
                                             smooth, progress))
-        for i, res in map_tiles(client, _icgn_task, jobs(), len(plans), "IC-GN tiles",
-                                progress):
-            m, _, cb = plans[i]
-            p, w, z, c, k, s, why, rr = res
-            out_rr[m] = rr
-            out_pts[m] = p + [cb[2], cb[0]]
-            out_w[m] = w
-            out_z[m], out_c[m], out_k[m], out_s[m], out_r[m] = z, c, k, s, why
+        for attempt in range(2):
+            for i, res in map_tiles(client, _icgn_task, jobs(), len(plans), "IC-GN tiles",
+                                    progress):
+                m, _, cb = plans[i]
+                p, w, z, c, k, s, why, rr, q = res
+                out_rr[m] = rr
+                out_pts[m] = p + [cb[2], cb[0]]
+                out_w[m] = w
+                out_z[m], out_c[m], out_k[m], out_s[m], out_r[m] = z, c, k, s, why
+                if attempt == 0:
+                    out_q[m] = q
+            # the default noise measurement of icgn_refine over all the points: the
+            # image estimates scaled by the median residual ratio when it is below 1
+            f = _calibration_factor(out_q) if calibrate and attempt == 0 else 1.0
+            if f >= 1.0:
+                break
+            kw["noise_sigma"] = tuple(np.asarray(kw["noise_sigma"], float) * np.sqrt(f))
     # the translation part of the warp in whole-image coordinates (as icgn_refine: pts - pts_ref)
     out_w[:, 0] = out_pts[:, 0] - pr[:, 0]
     out_w[:, 3] = out_pts[:, 1] - pr[:, 1]
@@ -444,7 +460,7 @@ def tiled_icgn(ref_img, cur_img, pts_ref, pts_guess, *, tile_px=DEFAULT_TILE_PX,
         np.broadcast_to(np.asarray(noise, np.float64), (2,)).copy()
     return SubsetResult(pts=out_pts, warp=out_w, zncc=out_z, converged=out_c, n_iter=out_k,
                         sigma_px=out_s, reason=reason, residual_ratio=out_rr,
-                        noise_sigma=noise)
+                        noise_sigma=noise, noise_ratio=out_q)
 
 
 # --------------------------------------------------------------------------- tracking

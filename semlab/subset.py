@@ -103,6 +103,13 @@ class SubsetResult:
     noise_sigma : (2,) float array
         Noise standard deviation of the reference and current images used for
         ``sigma_px`` (grey units; NaN with ``noise_sigma="residual"``).
+    noise_ratio : (N,) float array
+        Residual variance of each converged subset over the one the images' own noise
+        estimate (:func:`semlab.noise.image_noise_sigma`, or the given ``noise_sigma``)
+        predicts with the smoothing, interpolation and fitted-parameter gains, before the
+        calibration: its median, capped at 1, is the factor the default applies to the
+        noise variances (:func:`_calibrate_noise`). NaN where not converged or with
+        ``noise_sigma="residual"``.
     """
 
     pts: np.ndarray
@@ -114,6 +121,7 @@ class SubsetResult:
     reason: np.ndarray
     residual_ratio: np.ndarray = None
     noise_sigma: np.ndarray = None
+    noise_ratio: np.ndarray = None
 
     def __len__(self):
         return len(self.pts)
@@ -243,14 +251,18 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         times.
     noise_sigma : None, float, (σ_ref, σ_cur) or "residual"
         Standard deviation of the white noise of the (unsmoothed) images, in their grey
-        units, for ``sigma_px``. None (default) measures it from each image
-        (:func:`semlab.noise.image_noise_sigma`); give the values to reuse them when the
-        same images are matched many times. ``"calibrated"`` lowers the image estimates
-        to what the median residual of the matched subsets allows (for textures sharp at
-        the pixel scale, where Immerkær's mask counts texture as noise: on DIC Challenge
-        sample 5 the predicted σ is then 0.0051 px against 0.0057 px actual, 0.015 px
-        without). ``"residual"`` takes each subset's own residual variance instead (no
-        measurement; it also counts model misfit).
+        units, for ``sigma_px``. None (default) measures it from the images and the
+        matched subsets: each image's Immerkær estimate
+        (:func:`semlab.noise.image_noise_sigma`, an upper bound where the texture is sharp
+        at the pixel scale, which the mask counts as noise) is lowered to what the median
+        residual variance of the converged subsets allows, that residual being divided by
+        the noise gains of the pre-smoothing and of the B-spline interpolation of the
+        current image (:func:`_calibrate_noise`; kept when fewer than 10 subsets converge).
+        On DIC Challenge sample 5 the predicted σ is then close to the actual error (see
+        ``tests/test_subset.py::test_dic_challenge_sample5``); on smooth textures the
+        Immerkær value is kept. ``"calibrated"`` is the same as None. Give the values to
+        impose them (no calibration). ``"residual"`` takes each subset's own residual
+        variance instead (no measurement; it also counts model misfit).
     progress : bool
         Show a tqdm bar over chunks of subsets.
     coef_offset : float, optional
@@ -367,6 +379,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         return ii, _icgn_chunk(ctx, X0[ii], pr[ii], pg[ii], grad0[ii])
 
     cov_in = []
+    qout = np.full(n, np.nan)
     if len(chunks) > 1 and _N_THREADS > 1:
         with ThreadPoolExecutor(_N_THREADS) as ex:
             results = ex.map(run, chunks)
@@ -379,7 +392,10 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
     if cov_in:
         Hs, Hk, Hinv, rvar, rat, e = (np.concatenate(a) for a in zip(*cov_in))
         ii = idx if len(chunks) == 1 else np.concatenate([c for c in chunks])
-        noise_var = _calibrate_noise(noise_var, rvar, rat, ctx["noise_gain"], noise_sigma)
+        q = _noise_ratios(noise_var, _noise_residual_variance(ctx, Hk, Hinv, rvar), rat,
+                          ctx["noise_gain"], _interp_noise_gain(smooth_sigma_px, pts[ii]))
+        qout[ii] = q
+        noise_var = _calibrate_noise(noise_var, q, noise_sigma)
         ctx["noise_var"] = noise_var
         xi_ = ctx["xi"]
         B = np.stack([np.ones(xi_.shape[1]), xi_[0], xi_[1]], 1) if ctx["affine"] else \
@@ -393,7 +409,7 @@ def icgn_refine(ref_img, cur_img, pts_ref, pts_guess, half_window=10, warp="affi
         np.zeros(0, dtype="<U1")
     return SubsetResult(pts=pts, warp=wout, zncc=zncc, converged=conv, n_iter=nit,
                         sigma_px=sig, reason=reason, residual_ratio=rres,
-                        noise_sigma=np.sqrt(np.array(noise_var)))
+                        noise_sigma=np.sqrt(np.array(noise_var)), noise_ratio=qout)
 
 
 def _maybe_tqdm(it, total, progress):
@@ -654,35 +670,99 @@ def _icgn_chunk(ctx, X0, pr, pg, grad0):
 
 
 @functools.lru_cache(maxsize=16)
-def _interp_noise_gain():
-    """Mean over sub-pixel fractions of the white-noise variance gain of the cubic
-    B-spline interpolant (both axes): the current subset's noise shrinks by it."""
-    t = np.linspace(0, 1, 21)[:-1]
+def _interp_gain_table(smooth_sigma_px=0.0):
+    """1D white-noise variance gains of the cubic B-spline interpolant at the sub-pixel
+    fractions ``t = 0, 1/20, … 1`` (21 values), relative to the gain of the Gaussian
+    pre-smoothing of ``smooth_sigma_px``."""
+    t = np.linspace(0, 1, 21)
     delta = np.zeros(41)
     delta[20] = 1.0
-    c = ndimage.spline_filter1d(delta, order=3, mode="mirror")
+    k = ndimage.gaussian_filter1d(delta, float(smooth_sigma_px), mode="mirror", truncate=3.0) \
+        if smooth_sigma_px else delta
+    c = ndimage.spline_filter1d(k, order=3, mode="mirror")
     g1 = [np.sum(ndimage.map_coordinates(c, [np.arange(41) + tt], order=3, prefilter=False,
                                          mode="mirror") ** 2) for tt in t]
-    return float(np.mean(g1)) ** 2
+    return np.array(g1) / float(np.sum(k ** 2))
 
 
-def _calibrate_noise(noise_var, rvar, ratio, gain, mode):
+def _interp_noise_gain(smooth_sigma_px=0.0, pts=None):
+    """White-noise variance gain of the cubic B-spline interpolant (both axes), relative
+    to the gain of the Gaussian pre-smoothing: the factor by which sampling the current
+    image between pixels shrinks its (smoothed) noise. Without ``pts`` the mean over
+    sub-pixel fractions (0.764 unsmoothed; 0.98 after a 0.8 px Gaussian: smoothed noise is
+    nearly band-limited and interpolates almost unchanged); with ``pts`` ((n, 2) sampled
+    positions (x, y)) the gain at each one's fractions, (n,)."""
+    g1 = _interp_gain_table(float(smooth_sigma_px or 0.0))
+    if pts is None:
+        return float(np.mean(g1[:-1])) ** 2
+    t = np.linspace(0, 1, 21)
+    frac = np.asarray(pts, float) % 1.0
+    return np.interp(frac[:, 0], t, g1) * np.interp(frac[:, 1], t, g1)
+
+
+def _noise_residual_variance(ctx, Hk, Hinv, rvar):
+    """Residual variances (n,) rescaled to the degrees of freedom the fit leaves the noise.
+
+    ``rvar`` divides the squared residual by ``P - npar``, which holds for white noise; a
+    pre-smoothed noise has fewer independent pixels, and the warp's columns ``J`` (smooth
+    where the texture is) absorb more of it: ``E|P_J n|² = s² tr(H⁻¹ Hk)`` with
+    ``Hk = Σ (K J)ᵀ (K J)``, i.e. ``tr(H⁻¹ Hk) / γ_K`` pixels' worth of the per-pixel
+    variance ``γ_K s²`` (``npar`` without smoothing); removing the subset means takes
+    ``1 / γ_K`` more. On the smooth synthetic texture of
+    ``tests/test_subset.py`` (0.8 px smoothing, 17-21 px subsets) the uncorrected residual
+    gives a noise σ 4-6 % low.
+    """
+    P = ctx["xi"].shape[1]
+    npar = 6 if ctx["affine"] else 2
+    if ctx["kgx_flat"] is None:
+        return rvar
+    # the warp's share, plus the subset mean removed from each image (for a smoothed noise
+    # 1 / γ_K pixels' worth of its variance)
+    dof_fit = (np.einsum("nij,nji->n", Hinv, Hk) + 1.0) / ctx["noise_gain"]
+    return rvar * (P - npar) / np.maximum(P - dof_fit, 1.0)
+
+
+def _noise_ratios(noise_var, rvar, ratio, gain, interp_gain):
+    """Residual variance of each subset over the one the noise variances predict, (n,).
+
+    The residual variance of a converged subset (ZNSSD, per degree of freedom left to the
+    noise, in reference grey units, :func:`_noise_residual_variance`) is, where the warp
+    fits, the noise's ``γ_K (s_f² + ratio² γ_I s_g²)`` (``γ_K`` the smoothing gain
+    ``gain``, ``γ_I`` the interpolation gain of the current image at the matched position
+    ``interp_gain``, scalar or (n,), ``ratio = Δf/Δg``), and more where it does not (model
+    misfit). NaN where not converged or where the noise is not measured.
+    """
+    ig = np.broadcast_to(interp_gain, np.shape(rvar))
+    pred = gain * (noise_var[0] + ig * np.asarray(ratio) ** 2 * noise_var[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.asarray(rvar) / np.maximum(pred, 1e-300)
+
+
+def _calibration_factor(noise_ratio):
+    """Variance factor ``min(1, median(noise_ratio))`` of the default noise measurement
+    (1 with fewer than 10 finite ratios)."""
+    q = np.asarray(noise_ratio, float)
+    q = q[np.isfinite(q)]
+    if len(q) < 10:
+        return 1.0
+    f = float(np.median(q))
+    return min(1.0, f) if np.isfinite(f) else 1.0
+
+
+def _calibrate_noise(noise_var, noise_ratio, mode):
     """Measured noise variances, lowered to what the matched subsets' residuals allow.
 
     Immerkær's estimate is an upper bound where the texture is sharp at the pixel scale;
-    the median residual variance of the converged subsets (÷ the smoothing and the
-    interpolation gains) is a second upper bound (it also holds model misfit). With
-    ``mode == "calibrated"`` the smaller is used, as the ratio of the two (the relative
-    noise of the two images is kept from the image estimates).
+    the median of the subsets' ``noise_ratio`` (:func:`_noise_ratios`) is a second upper
+    bound of the variance scale (it also holds model misfit). When the noise is measured
+    (``mode`` None or ``"calibrated"``), both image variances are multiplied by
+    :func:`_calibration_factor` (their relative level is kept from the image estimates);
+    given values are returned unchanged.
     """
-    if not (isinstance(mode, str) and mode == "calibrated") or not np.isfinite(noise_var[0]):
+    measured = mode is None or (isinstance(mode, str) and mode == "calibrated")
+    if not measured or not np.isfinite(noise_var[0]):
         return noise_var
-    ok = np.isfinite(rvar) & np.isfinite(ratio)
-    if ok.sum() < 10:
-        return noise_var
-    s_img = noise_var[0] + ratio[ok] ** 2 * noise_var[1]
-    f = float(np.median((rvar[ok] / gain / _interp_noise_gain()) / np.maximum(s_img, 1e-300)))
-    f = min(1.0, f) if np.isfinite(f) else 1.0
+    f = _calibration_factor(noise_ratio)
     return (noise_var[0] * f, noise_var[1] * f)
 
 

@@ -55,7 +55,12 @@ def _assert_same_subsets(a, b, pos_tol):
     assert np.abs(a.zncc - b.zncc).max() <= 1e-9
     assert np.abs(a.sigma_px[ok] - b.sigma_px[ok]).max() <= 1e-9
     assert np.abs(a.residual_ratio[ok] - b.residual_ratio[ok]).max() <= 1e-6
-    assert np.array_equal(a.noise_sigma, b.noise_sigma)
+    # the default noise is calibrated on the median residual ratio of all the subsets,
+    # which the tiles reproduce to their float32 rounding (~1e-8 relative)
+    assert np.allclose(a.noise_sigma, b.noise_sigma, rtol=1e-7, atol=0)
+    ok_q = np.isfinite(a.noise_ratio)
+    assert np.array_equal(ok_q, np.isfinite(b.noise_ratio))
+    assert np.allclose(a.noise_ratio[ok_q], b.noise_ratio[ok_q], rtol=1e-6)
     assert np.isnan(b.pts[~ok]).all()
     return d
 
