@@ -11,7 +11,10 @@
 
 The noise of SEM images is signal-dependent (shot noise) and can be correlated along scan
 lines; :func:`image_noise_sigma` reports one white-noise level for the whole image, which
-is what the per-point error of :func:`semlab.subset.icgn_refine` needs.
+is what the per-point error of :func:`semlab.subset.icgn_refine` needs. Where the texture is
+sharp at the pixel scale (real SEM images, a fine speckle) it is an upper bound:
+``icgn_refine`` lowers it by default to what the matched subsets' residuals allow
+(``SubsetResult.noise_ratio``).
 """
 
 from __future__ import annotations
