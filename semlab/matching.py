@@ -665,7 +665,9 @@ def _filter_backward(st):
                     ims[j], ims[ref], st.out[idx[kk], j], st.grid[idx[kk]], warp_j[idx[kk]],
                     int(h), sm, cc, rc, p.max_iter, p.tol_px,
                     direction=e_j if one_d else None, return_sigma=True)
-        tol = np.fmax(p.backward_px, k * np.hypot(st.sig_ap[idx, j], sig_b))
+        tol = np.full(len(idx), float(p.backward_px))
+        if k:                                  # σ may be inf (texture below the noise)
+            tol = np.fmax(tol, k * np.hypot(st.sig_ap[idx, j], sig_b))
         bad = ~(fb_d <= tol)
         for i, dd, tt in zip(idx[bad], fb_d[bad], tol[bad]):
             st.reason[i] = (f"view {j}: forward–backward mismatch "
