@@ -742,10 +742,16 @@ def _epipolar_stage(ref_img, img, gw, M, e, start, pts_j, sig_j, rr_j, ok_j, r, 
     z = np.zeros(len(fail))
     held = np.column_stack([z, G[:, 0, 0], G[:, 0, 1], z, G[:, 1, 0], G[:, 1, 1]])
 
+    # the noise the 2D subsets of the view measured (icgn_refine's default), not
+    # Immerkær's upper bound again
+    noise = r.noise_sigma if r.noise_sigma is not None and np.all(np.isfinite(r.noise_sigma)) \
+        else None
+
     def run(k, sm, rc, cc):
         return epipolar_refine(ref_img, img, gw[fail[k]], guess[k], e, half_window, held[k],
                                search_px=search_px, max_iter=max_iter, tol_px=tol_px,
-                               smooth_sigma_px=sm, ref_prefiltered=rc, cur_prefiltered=cc)
+                               smooth_sigma_px=sm, ref_prefiltered=rc, cur_prefiltered=cc,
+                               noise_sigma=noise)
 
     if not smooth_sigma_px:
         k = np.random.default_rng(seed).choice(len(fail), min(len(fail), n_trial), False)
