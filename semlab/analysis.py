@@ -81,9 +81,9 @@ class AnalysisConfig:
         Compute the dense height map (a subset at every pixel of view 0: minutes on
         megapixel views); False leaves the height-map files out.
     heightmap_roi : (x0, y0, x1, y1) or None
-        Map only this half-open window of view-0 pixels (None: the whole view). Views of
-        more than ``semlab.tiled_stereo.DEFAULT_TILING.min_pixels`` pixels are mapped in
-        tiles either way.
+        Map only this half-open window of view-0 pixels (None: the whole view). Maps of
+        more than ``semlab.tiled_stereo.DEFAULT_TILING.map_min_pixels`` pixels (or of views
+        of more than its ``min_pixels``) are mapped in tiles either way.
     heightmap_method : {"subset", "variational"}
         The dense map's parallax: an IC-GN subset at every pixel (default) or the
         variational refinement (:mod:`semlab.variational`: better on weak texture, see the

@@ -187,6 +187,9 @@ def build_parser():
 def main(argv=None):
     """Entry point of the ``semlab`` console script. Returns the exit code."""
     args = build_parser().parse_args(argv)
+    from .parallel import limit_heap_growth
+
+    limit_heap_growth()   # the run's tiles: freed work arrays go back to the system
     try:
         return args.func(args)
     except SemlabError as exc:

@@ -728,9 +728,9 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     roi : (x0, y0, x1, y1), optional
         Half-open window of view-0 pixels to map (default the whole view).
     tiling : semlab.tiled_stereo.TilingParams, optional
-        Views of more than ``tiling.min_pixels`` pixels are mapped in tiles with one
-        calibration (:func:`semlab.tiled_stereo.tiled_parallax`; default
-        ``DEFAULT_TILING``).
+        Views of more than ``tiling.min_pixels`` pixels, and maps of more than
+        ``tiling.map_min_pixels``, are mapped in tiles with one calibration
+        (:func:`semlab.tiled_stereo.tiled_parallax`; default ``DEFAULT_TILING``).
     scheduler : str, optional
         Where the tiles run (see :func:`semlab.parallel.dask_client`).
 
@@ -765,7 +765,7 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     method = variational_parallax if isinstance(params, VariationalParams) else None
     if method is not None:
         notes.append("variational parallax (semlab.variational.refine_parallax)")
-    if t.tiles(np.shape(views[0])):
+    if t.tiles_map(np.shape(views[0]), roi):
         par = tiled_parallax(views[0], views[1], seeds=stereo.pts[:, :2], roi=roi,
                              params=params, method=method, tiling=t, scheduler=scheduler,
                              progress=progress)

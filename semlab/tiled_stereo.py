@@ -68,6 +68,10 @@ class TilingParams:
         seeds' parallax (or the global affine), pixels: the crops reach this far.
     prior_max_side_px : int
         The global affine prior is found on views downsampled to at most this side.
+    map_min_pixels : int
+        Height maps of more pixels than this are mapped in tiles whatever the views' size
+        (default 512²): an untiled map holds ~3.7 kB of work arrays per pixel (11.5 GB
+        for a 1536×2048 map, 1.4 GB in 256 px tiles; 2026-12-01).
     """
 
     min_pixels: int = 2048 * 2048
@@ -76,9 +80,11 @@ class TilingParams:
     dense_tile_px: int = 256
     max_parallax_px: float = 48.0
     prior_max_side_px: int = 1024
+    map_min_pixels: int = 512 * 512
 
     def __post_init__(self):
-        for name in ("min_pixels", "tile_px", "halo_px", "dense_tile_px", "prior_max_side_px"):
+        for name in ("min_pixels", "tile_px", "halo_px", "dense_tile_px", "prior_max_side_px",
+                     "map_min_pixels"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < 0:
                 raise SemlabError(f"TilingParams.{name} must be a whole number >= 0, got {v!r}")
@@ -94,6 +100,12 @@ class TilingParams:
     def tiles(self, shape):
         """True when views of ``shape`` (H, W) are tiled."""
         return int(shape[0]) * int(shape[1]) > self.min_pixels
+
+    def tiles_map(self, shape, roi=None):
+        """True when the height map of ``roi`` ((x0, y0, x1, y1), default the whole view)
+        on views of ``shape`` (H, W) is mapped in tiles."""
+        x0, y0, x1, y1 = roi if roi is not None else (0, 0, shape[1], shape[0])
+        return self.tiles(shape) or (int(x1) - int(x0)) * (int(y1) - int(y0)) > self.map_min_pixels
 
 
 #: The run's tiling (``semlab run`` and :class:`semlab.Analysis`).

@@ -1,6 +1,8 @@
 """Tiles on dask.distributed: tiled dense IC-GN and tracking equal the untiled runs, also on
 a cluster started on loopback inside the test; the scheduler argument of the API and CLI."""
 
+import sys
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -287,3 +289,10 @@ def test_an_analysis_scheduler_applies_to_that_analysis_only(loopback_cluster, m
     with parallel.scheduler_scope(loopback_cluster):
         assert os.environ[parallel.SCHEDULER_ENV] == loopback_cluster
     assert os.environ[parallel.SCHEDULER_ENV] == "tcp://127.0.0.1:1"   # restored
+
+
+def test_limit_heap_growth_takes_effect_with_glibc():
+    import platform
+
+    glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert parallel.limit_heap_growth() is glibc

@@ -75,7 +75,7 @@ def test_tiled_auto_match_follows_a_drift_and_rejects_bad_grids():
 def test_tiling_params_are_checked():
     assert TilingParams().tiles((3072, 4096)) and not TilingParams().tiles((1536, 2048))
     for bad in (dict(tile_px=100), dict(halo_px=-1), dict(max_parallax_px=-2.0),
-                dict(min_pixels=1.5), dict(prior_max_side_px=10)):
+                dict(min_pixels=1.5), dict(prior_max_side_px=10), dict(map_min_pixels=-1)):
         with pytest.raises(SemlabError):
             TilingParams(**bad)
 
@@ -169,3 +169,10 @@ def test_the_run_steps_take_the_tiled_path_above_the_threshold(small_experiment_
     # one calibration from the central 64² window instead of the whole map's: the same
     # heights within a nanometre or so
     assert np.median(np.abs(tiled.z_um[both] - whole.z_um[both])) < 0.002
+    # a map larger than map_min_pixels is tiled even when the views are not
+    big_map = TilingParams(map_min_pixels=64 * 64, dense_tile_px=64)
+    assert not big_map.tiles(views[0].shape) and big_map.tiles_map(views[0].shape)
+    assert not big_map.tiles_map(views[0].shape, roi=(0, 0, 64, 64))
+    by_map = heightmap_from_stereo(exp, st, tiling=big_map)
+    assert any("tiles" in n for n in by_map.notes)
+    assert np.median(np.abs(by_map.z_um[both] - whole.z_um[both])) < 0.002
