@@ -472,3 +472,53 @@ def test_roughness_stage_removes_steep_flank_matches():
         err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
         n_bad[name] = int((np.abs(err) > 0.03).sum())
     assert n_bad["off"] > 1.5 * n_bad["on"]
+
+
+def _edge_pair(shape=(96, 160), xe_px=80.0, step_um=0.2, noise=0.01, seed=0):
+    """Views of a textured plateau (x >= xe_px in view 0, ``step_um`` high) beside a flat
+    texture-free background at height 0: a straight edge along y."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    tex = ndimage.gaussian_filter(rng.standard_normal((h, 4 * w)), 1.5)
+    tex = 0.3 * tex / tex.std()
+    cx = (w - 1) / 2
+    ims = []
+    for t in np.deg2rad(TILTS):
+        u = np.arange(w) - cx
+        x_pl = (u * S_UM - step_um * np.sin(t)) / np.cos(t)
+        on_pl = x_pl >= (xe_px - cx) * S_UM / np.cos(np.deg2rad(TILTS[0]))
+        x = np.where(on_pl, x_pl, u * S_UM / np.cos(t))
+        vv, cc = np.meshgrid(np.arange(h, dtype=float), x / S_UM + 2 * w, indexing="ij")
+        val = ndimage.map_coordinates(tex, [vv, cc], order=3, mode="nearest")
+        ims.append(np.where(on_pl[None, :], 1.0 + val, 0.5) + noise * rng.standard_normal(shape))
+    return ims, cx
+
+
+def test_click_on_flat_background_beside_an_edge_is_flagged():
+    # clicks on the texture-free background 5 px left of a 0.2 µm step's edge: every subset
+    # that sees any gradient sees the plateau's edge, whose parallax is ~1.1 px away from
+    # the background's, with a noise σ of ~0.03 px (no residual says so). Before
+    # information_offset these clicks were valid with |error| ~0.9 px at σ ~0.03 px.
+    ims, cx = _edge_pair()
+    t0, t1 = np.deg2rad(TILTS)
+    ys = np.arange(16.0, 84.0, 12.0)
+    bg0 = np.full(len(ys), 75.0)
+    pl0 = np.array([115.0, 135.0, 125.0])
+    xb = (bg0 - cx) * S_UM / np.cos(t0)
+    xp = ((pl0 - cx) * S_UM - 0.2 * np.sin(t0)) / np.cos(t0)
+    u1 = np.r_[cx + xb * np.cos(t1) / S_UM, cx + (xp * np.cos(t1) + 0.2 * np.sin(t1)) / S_UM]
+    y = np.r_[ys, 20.0, 70.0, 45.0]
+    clicks = np.stack([np.column_stack([np.r_[bg0, pl0], y]), np.column_stack([u1 + 0.3, y])], 1)
+    r = refine_correspondences(ims, clicks)
+    bg = np.arange(len(ys))
+    err = np.abs(r.pts[:, 1, 0] - u1)
+    covered = r.valid & (err <= 2 * r.sigma_px)
+    flagged = ~r.valid & (np.char.find(r.reason, "parallax information is centred") >= 0)
+    assert np.all(covered[bg] | flagged[bg])
+    assert flagged[bg].any()
+    # the clicks on the plateau's texture are kept and right
+    assert r.valid[len(ys):].all() and np.all(err[len(ys):] < 0.1)
+    # switched off, the background clicks come back with an error their σ does not cover
+    r0 = refine_correspondences(ims, clicks, max_info_offset=None)
+    err0 = np.abs(r0.pts[bg, 1, 0] - u1[bg])
+    assert np.any(r0.valid[bg] & (err0 > 5 * r0.sigma_px[bg]))
