@@ -426,13 +426,19 @@ def test_refine_with_target_sigma_sizes_subsets(stereo):
     true, clicks = _clicks(sc)
     fixed = refine_correspondences(ims, clicks, band_aware=False, half_window=7,
                                    smooth_sigma_px=0.8, target_sigma_px=None)
+    # sized by the noise alone (curvature_neighbours=None): the subsets grow
     adapt = refine_correspondences(ims, clicks, band_aware=False, half_window=7,
                                    target_sigma_px=0.02, max_half_window=20,
-                                   smooth_sigma_px=0.8)
+                                   smooth_sigma_px=0.8, curvature_neighbours=None)
     assert np.all(fixed.subset_px[fixed.valid] == 15)
     assert adapt.valid.mean() >= 0.9
     s = adapt.subset_px[adapt.valid]
     assert np.median(s) > 15 and np.all(s <= 41)
+    # the default also counts the curvature bias a larger subset brings: never larger
+    curv = refine_correspondences(ims, clicks, band_aware=False, half_window=7,
+                                  target_sigma_px=0.02, max_half_window=20,
+                                  smooth_sigma_px=0.8)
+    assert np.median(curv.subset_px[curv.valid]) <= np.median(s)
     assert np.median(adapt.sigma_px[adapt.valid]) < np.median(fixed.sigma_px[fixed.valid])
     assert len(adapt.select(adapt.valid).subset_px) == adapt.valid.sum()
 
