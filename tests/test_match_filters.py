@@ -24,11 +24,8 @@ def _view_errors(sc, m, tilts, view):
     return v, np.hypot(*(v.pts[:, view] - sc.project(x, y, tilts[view])).T)
 
 
-def test_forward_backward_stage_removes_mismatched_spots():
-    """25 spots of 17×17 px in the second view moved by 1.5 px across the parallax
-    direction (local charging or debris): subsets partly over a spot converge to a mix
-    that the backward match does not reproduce. Without the forward–backward stage at
-    least twice as many accepted matches are off by more than 0.5 px."""
+def _spotted_pair():
+    """The scene and its two views, 25 spots of view 1 moved 1.5 px across the parallax."""
     sc = Scene(seed=5)
     ims = [sc.render(TILTS[0], noise=0.05, seed=1), sc.render(TILTS[1], noise=0.05, seed=2)]
     moved = ndimage.shift(ims[1], (1.5, 0.0), order=3, mode="nearest")
@@ -36,6 +33,15 @@ def test_forward_backward_stage_removes_mismatched_spots():
     for _ in range(25):
         cx, cy = rng.integers(30, 230), rng.integers(30, 170)
         ims[1][cy - 8:cy + 9, cx - 8:cx + 9] = moved[cy - 8:cy + 9, cx - 8:cx + 9]
+    return sc, ims
+
+
+def test_forward_backward_stage_removes_mismatched_spots():
+    """25 spots of 17×17 px in the second view moved by 1.5 px across the parallax
+    direction (local charging or debris): subsets partly over a spot converge to a mix
+    that the backward match does not reproduce. Without the forward–backward stage at
+    least twice as many accepted matches are off by more than 0.5 px."""
+    sc, ims = _spotted_pair()
     gross = {}
     for name, kw in (("on", {}), ("off", dict(backward_px=None))):
         _, e = _view_errors(sc, auto_match(ims, progress=False, **kw), TILTS, 1)
@@ -92,13 +98,7 @@ def test_forward_backward_against_error_bars_keeps_rejecting_mismatched_spots():
     (> 0.5 px) that the fixed test removes (measured: fixed 271 points / 20 gross,
     σ-judged 279 / 25, stage off 393 / 56: the few it adds are mostly mismatched spots,
     whose forward and backward matches agree on the same wrong mix)."""
-    sc = Scene(seed=5)
-    ims = [sc.render(TILTS[0], noise=0.05, seed=1), sc.render(TILTS[1], noise=0.05, seed=2)]
-    moved = ndimage.shift(ims[1], (1.5, 0.0), order=3, mode="nearest")
-    rng = np.random.default_rng(3)
-    for _ in range(25):
-        cx, cy = rng.integers(30, 230), rng.integers(30, 170)
-        ims[1][cy - 8:cy + 9, cx - 8:cx + 9] = moved[cy - 8:cy + 9, cx - 8:cx + 9]
+    sc, ims = _spotted_pair()
     n, gross = {}, {}
     for name, kw in (("fixed", {}), ("sigma", dict(backward_sigma_p=0.99)),
                      ("off", dict(backward_px=None))):
