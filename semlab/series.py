@@ -33,8 +33,9 @@ class TrackingResult:
     tracks : semlab.tracking.Tracks
         Every step with its forward–backward error and valid flag, by chronological frame.
     seed : (N,) str
-        ``"corner"`` (Shi–Tomasi in the last frame) or ``"stereo"`` (a stereo point
-        registered into the last frame).
+        ``"corner"`` (Shi–Tomasi in the last frame), ``"grid"`` (a regular grid, see
+        :func:`run_tracking`'s ``grid_kw``) or ``"stereo"`` (a stereo point registered into
+        the last frame).
     stereo_index : (N,) int
         Index into the stereo result of a stereo-seeded track, -1 for corners.
     z_um : (N,) float
@@ -87,7 +88,7 @@ def earliest_valid_frame(valid):
 
 @strict_keywords
 def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, progress=True,
-                 register="similarity"):
+                 register="similarity", grid_kw=None):
     """Track points backwards through the series and derive the displacements.
 
     Parameters
@@ -106,6 +107,12 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, p
         magnification: a stage) is the default because an affine fit to features on a
         slip-banded surface can take a shear and a 3 % stretch from the material's own,
         non-uniform motion; ``"affine"`` also absorbs a linear scan drift.
+    grid_kw : dict, optional
+        Also seed a regular grid of the last frame (:func:`semlab.tracking.grid_seeds`
+        with these keywords; ``{}`` for its defaults), ``seed`` ``"grid"``; grid points
+        within half a grid step of a corner are left out. None (default): corners (and
+        stereo points) only. On a polished surface the corners are a few dozen particles
+        (29 on the 384×512 series of ``benchmarks/tracking_series.py``).
 
     Returns
     -------
@@ -123,6 +130,11 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, p
     corners = tracking.shi_tomasi_seeds(frames[-1], name=exp.series.frame_paths[-1].name,
                                         **(corner_kw or {}))
     seeds, kinds, sidx = [corners], [np.array(["corner"] * len(corners))], [np.full(len(corners), -1)]
+    if grid_kw is not None:
+        grid = tracking.grid_seeds(frames[-1].shape, avoid=corners, **grid_kw)
+        seeds.append(grid)
+        kinds.append(np.array(["grid"] * len(grid)))
+        sidx.append(np.full(len(grid), -1))
     registration = {}
     if stereo is not None and exp.stereo is not None:
         mapped, A, residual = register_points(exp.views()[0], frames[-1], stereo[0])

@@ -16,7 +16,7 @@ import numpy as np
 from .errors import TrackingError
 
 __all__ = ["TrackingWarning", "normalize_frame", "match_sigma_px", "median_outliers",
-           "shi_tomasi_seeds"]
+           "shi_tomasi_seeds", "grid_seeds"]
 
 #: A frame whose robust intensity range (0.5-99.5 percentile) is below this fraction of its
 #: absolute level (or exactly zero) is treated as blank.
@@ -204,6 +204,69 @@ def _min_gradient_energy(ref01, seeds, half):
     b = (gx * gy).sum(axis=(1, 2))
     c = (gy * gy).sum(axis=(1, 2))
     return 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+
+
+def grid_seeds(shape, spacing_px=None, border_px=24, max_seeds=2000, avoid=None,
+               min_distance=None):
+    """A regular grid of track seeds over the last frame, for strain and low texture.
+
+    Shi-Tomasi corners with a quality relative to the best corner (:func:`shi_tomasi_seeds`)
+    put a handful of seeds on the few particles of a polished surface (28-52 on the
+    384x512 series of ``benchmarks/tracking_series.py``): too few for a strain gauge, and
+    none where the texture is weak but still trackable by a subset sized by its
+    information (``track_reverse(target_sigma_px=...)``). A grid covers the frame evenly,
+    as the grid of a DIC analysis does; which of its points can be followed is then the
+    tracker's decision, step by step, from each step's predicted σ.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Frame size, pixels.
+    spacing_px : float, optional
+        Grid step, pixels (default: 16 px, or wider so that at most ``max_seeds`` points
+        fit).
+    border_px : float
+        Distance of the outermost points from the frame edge, pixels (default 24: the
+        41 px subsets of ``max_half_window=20`` fit).
+    max_seeds : int
+        Largest number of grid points when ``spacing_px`` is None.
+    avoid : (M, 2) array, optional
+        Existing seeds ``(x, y)``: grid points closer than ``min_distance`` to one are left
+        out (no duplicate tracks).
+    min_distance : float, optional
+        Default ``spacing_px / 2``.
+
+    Returns
+    -------
+    (N, 2) float array of (x, y) pixels (possibly empty when the frame is smaller than
+    twice the border).
+
+    Examples
+    --------
+    >>> grid_seeds((96, 128), spacing_px=16).shape
+    (15, 2)
+    """
+    h, w = int(shape[0]), int(shape[1])
+    b = float(border_px)
+    def axes(step):
+        return np.arange(b, w - 1 - b + 1e-9, step), np.arange(b, h - 1 - b + 1e-9, step)
+
+    if spacing_px is None:
+        spacing_px = 16.0
+        while np.prod([len(a) for a in axes(spacing_px)]) > max(int(max_seeds), 1):
+            spacing_px += 1.0
+    step = float(spacing_px)
+    if not step > 0:
+        raise TrackingError(f"spacing_px must be > 0, got {spacing_px!r}")
+    xs, ys = axes(step)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float64)
+    if avoid is not None and len(pts) and len(avoid):
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(np.asarray(avoid, float)).query(pts)
+        pts = pts[d >= (step / 2 if min_distance is None else float(min_distance))]
+    return pts
 
 
 def match_sigma_px(zncc, lambda_min):

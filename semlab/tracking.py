@@ -38,7 +38,8 @@ from .errors import TrackingError
 from .track_steps import (_BLANK_REL_RANGE, TrackingWarning, _as_2d,  # noqa: F401 (re-exported)
                           _check_track_loss, _inside, _lk, _min_gradient_energy,
                           _sample_patches, _seed_kinds, _to_u8, _zncc,
-                          match_sigma_px, median_outliers, normalize_frame, shi_tomasi_seeds)
+                          grid_seeds, match_sigma_px, median_outliers, normalize_frame,
+                          shi_tomasi_seeds)
 
 __all__ = [
     "Tracks",
@@ -47,6 +48,7 @@ __all__ = [
     "match_sigma_px",
     "median_outliers",
     "shi_tomasi_seeds",
+    "grid_seeds",
     "track_reverse",
     "tracks_to_records",
     "write_tracks_csv",

@@ -1,0 +1,71 @@
+"""semlab.series: the seeds of the series chain and its strain step's failure."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import semlab
+from semlab import series
+from semlab.errors import SemlabError
+from semlab.tracking import grid_seeds
+
+
+def test_grid_seeds_cover_the_frame_evenly_and_avoid_existing_seeds():
+    g = grid_seeds((96, 128), spacing_px=16)
+    assert g.shape == (15, 2)                       # x 24, 40, .. 103; y 24, 40, 56, 72
+    assert g[:, 0].min() == 24 and g[:, 0].max() <= 127 - 24 and g[:, 1].max() <= 95 - 24
+    assert np.allclose(np.unique(np.diff(np.unique(g[:, 0]))), 16)
+    near = grid_seeds((96, 128), spacing_px=16, avoid=np.array([[25.0, 23.0], [200.0, 0.0]]))
+    assert len(near) == 14 and not np.any(np.all(near == [24.0, 24.0], axis=1))
+    big = grid_seeds((1536, 2048), max_seeds=2000)  # spacing widened to fit max_seeds
+    assert 1800 < len(big) <= 2000
+    assert len(grid_seeds((40, 40))) == 0            # smaller than twice the border
+    with pytest.raises(SemlabError, match="spacing_px"):
+        grid_seeds((96, 128), spacing_px=0)
+
+
+@pytest.fixture(scope="module")
+def small_series(tmp_path_factory):
+    from semlab.experiment import load
+    from semlab.synth import make_experiment
+
+    root = tmp_path_factory.mktemp("series")
+    toml = make_experiment(root / "exp", seed=1, size=(128, 160), tilts_deg=(), n_frames=3,
+                           progress=False)
+    return load(toml)
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_run_tracking_adds_grid_seeds(small_series):
+    corners = series.run_tracking(small_series, progress=False)
+    both = series.run_tracking(small_series, progress=False, grid_kw={"spacing_px": 16})
+    n_c = (both.seed == "corner").sum()
+    assert n_c == corners.tracks.n_tracks and (both.seed == "grid").sum() >= 10
+    assert np.array_equal(both.tracks.xy[-1][:n_c], corners.tracks.xy[-1])
+    g = both.tracks.xy[-1][both.seed == "grid"]
+    assert np.allclose(g, grid_seeds((128, 160), spacing_px=16,
+                                     avoid=corners.tracks.xy[-1]))
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_no_strain_is_an_error_of_the_strain_step(small_series, tmp_path, monkeypatch):
+    """Too few valid tracks before the last frame: run_strain raises, and in an analysis the
+    strain step fails with that message (its status, which `semlab run` turns into the
+    error and exit status 2) and writes no strain.npz, never an empty one."""
+    r = series.run_tracking(small_series, progress=False)
+    tr = r.tracks
+    lost = dataclasses.replace(r, tracks=dataclasses.replace(
+        tr, valid=np.vstack([np.zeros_like(tr.valid[:-1]), tr.valid[-1:]])))
+    with pytest.raises(SemlabError, match="no strain: no frame before the last has enough "
+                                          "valid tracks"):
+        series.run_strain(small_series, lost)
+    monkeypatch.setattr(series, "run_tracking", lambda *a, **k: lost)
+    an = semlab.Analysis(small_series, tmp_path / "out", progress=False)
+    status = an.run(["tracking", "strain"])
+    assert status["tracking"] == "ok"
+    assert "step 'strain' failed" in status["strain"] and "no strain" in status["strain"]
+    assert not (tmp_path / "out" / "strain.npz").exists()
+    assert (tmp_path / "out" / "tracks.csv").is_file()
+    with pytest.raises(semlab.StepFailed, match="enough valid tracks"):
+        an.strain()
