@@ -1,7 +1,7 @@
 """The series chain of ``semlab run`` (tracking, then strain) on low-texture and real-texture series.
 
 Run:  python benchmarks/tracking_series.py [--cases polished,real:fei,real:quartz]
-      [--configs default,subset-sized,sized+grid+σ0.1] [--drift]
+      [--configs "default;subset-sized;subset-sized, corners only"] [--drift]
 
 Each case is an 8-frame 384×512 frontal series with the deformation growing over the cycles
 (:mod:`semlab.synth`'s schedule: slip bands plus a uniform strain of 1 % / −0.5 % / 0.4 %),
@@ -19,9 +19,10 @@ The chain is what :class:`semlab.Analysis` runs (``series.run_tracking`` with th
 configuration's ``track_method`` / ``track_target_sigma_px``, then ``series.run_strain``) on a
 series-only experiment (Shi–Tomasi seeds in the last frame). ``default`` is
 :class:`semlab.AnalysisConfig`'s default (LK), ``subset-sized`` its subset tracker sized by
-the information (``track_target_sigma_px=0.02``), ``sized+grid+σ0.1`` the same with a
-16 px grid of seeds added (``run_tracking(grid_kw={})``) and steps valid up to a predicted
-σ of 0.1 px (a fifth of the 0.5 px error budget; the default is 0.05). The truth of every track comes from the scene's own
+the information (``track_target_sigma_px=0.02``: with it ``run_tracking`` also seeds a grid
+where the texture allows valid steps, and the steps' σ count the model error, see
+``track_reverse``'s ``max_sigma_px`` and ``model_neighbours``), ``subset-sized, corners
+only`` the same without the grid. The truth of every track comes from the scene's own
 displacement field at the seed (end-state) position; the strain's truth is the Green–Lagrange
 strain from the reference frame the run chose to the end, ``F = (I − (1 − f_r) ∂U/∂x)⁻¹``.
 
@@ -49,8 +50,8 @@ STRAIN = (0.01, -0.005, 0.004)
 #: name -> (AnalysisConfig fields, extra keywords of series.run_tracking)
 CONFIGS = {"default": ({}, {}),
            "subset-sized": ({"track_method": "subset", "track_target_sigma_px": 0.02}, {}),
-           "sized+grid+σ0.1": ({"track_method": "subset", "track_target_sigma_px": 0.02},
-                               {"grid_kw": {}, "track_kw": {"max_sigma_px": 0.1}})}
+           "subset-sized, corners only": ({"track_method": "subset",
+                                           "track_target_sigma_px": 0.02}, {"grid_kw": None})}
 
 
 def make_case(case, out, seed=0, drift=False, n_frames=8):
@@ -133,13 +134,13 @@ def run_case(case, config, seed=0, drift=False):
         exp = experiment.load(toml)
         kw = {} if cfg.track_target_sigma_px is None else {
             "target_sigma_px": float(cfg.track_target_sigma_px)}
-        kw.update(extra.get("track_kw", {}))
         t0 = time.perf_counter()
         try:
             with warnings.catch_warnings(record=True):
                 warnings.simplefilter("always")
                 r = series.run_tracking(exp, method=cfg.track_method, track_kw=kw or None,
-                                        grid_kw=extra.get("grid_kw"), progress=False)
+                                        grid_kw=extra.get("grid_kw", "auto"),
+                                        progress=False)
         except SemlabError as exc:
             return {"case": case + (" +drift" if drift else ""), "config": config,
                     "error": f"tracking failed: {exc}", "t_track": time.perf_counter() - t0}
@@ -184,7 +185,7 @@ def _fmt_strain(s):
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cases", default="polished,real:fei,real:quartz")
-    ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--configs", default=";".join(CONFIGS), help="separated by ';'")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drift", action="store_true")
     args = ap.parse_args()
@@ -193,7 +194,7 @@ def main():
           "measured median (RMS point error) | s (track + strain) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for case in args.cases.split(","):
-        for config in args.configs.split(","):
+        for config in args.configs.split(";"):
             r = run_case(case, config, seed=args.seed, drift=args.drift)
             if "error" in r:
                 print(f"| {r['case']} | {config} | - | {r['error']} | 0 | - | - | - | no strain |"

@@ -88,7 +88,7 @@ def earliest_valid_frame(valid):
 
 @strict_keywords
 def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, progress=True,
-                 register="similarity", grid_kw=None):
+                 register="similarity", grid_kw="auto"):
     """Track points backwards through the series and derive the displacements.
 
     Parameters
@@ -107,12 +107,16 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, p
         magnification: a stage) is the default because an affine fit to features on a
         slip-banded surface can take a shear and a 3 % stretch from the material's own,
         non-uniform motion; ``"affine"`` also absorbs a linear scan drift.
-    grid_kw : dict, optional
+    grid_kw : dict, "auto" or None
         Also seed a regular grid of the last frame (:func:`semlab.tracking.grid_seeds`
-        with these keywords; ``{}`` for its defaults), ``seed`` ``"grid"``; grid points
-        within half a grid step of a corner are left out. None (default): corners (and
-        stereo points) only. On a polished surface the corners are a few dozen particles
-        (29 on the 384×512 series of ``benchmarks/tracking_series.py``).
+        with these keywords; ``{}`` for its defaults), ``seed`` ``"grid"``: grid points
+        within half a grid step of a corner are left out, and so are those whose subset
+        cannot reach the steps' ``max_sigma_px`` even in the last frame
+        (:func:`semlab.tracking.seed_sigma_px` at ``max_half_window``: no texture there).
+        ``"auto"`` (default): the default grid when ``track_kw`` sizes the subsets by
+        their information (``target_sigma_px``), none otherwise. None: corners (and stereo
+        points) only. On a polished surface the corners are a few dozen particles (29 on
+        the 384×512 series of ``benchmarks/tracking_series.py``), too few for a strain.
 
     Returns
     -------
@@ -130,8 +134,23 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, p
     corners = tracking.shi_tomasi_seeds(frames[-1], name=exp.series.frame_paths[-1].name,
                                         **(corner_kw or {}))
     seeds, kinds, sidx = [corners], [np.array(["corner"] * len(corners))], [np.full(len(corners), -1)]
+    tkw = dict(track_kw or {})
+    if isinstance(grid_kw, str):
+        if grid_kw != "auto":
+            raise SemlabError(f"grid_kw={grid_kw!r}: give a dict of grid_seeds keywords, "
+                              "'auto' or None")
+        grid_kw = {} if tkw.get("target_sigma_px") is not None else None
     if grid_kw is not None:
         grid = tracking.grid_seeds(frames[-1].shape, avoid=corners, **grid_kw)
+        max_sigma = tracking._max_sigma(tkw.get("max_sigma_px", "auto"),
+                                        tkw.get("target_sigma_px"))
+        if max_sigma is not None and len(grid):
+            hw = tkw.get("max_half_window", 20) if tkw.get("target_sigma_px") is not None \
+                else tkw.get("subset_half_window") or tkw.get("win_size", 21) // 2
+            sm = tkw.get("smooth_sigma_px")
+            sm = (0.8 if tkw.get("target_sigma_px") is not None else 0.0) if sm is None else sm
+            grid = grid[tracking.seed_sigma_px(frames[-1], grid, half_window=hw,
+                                               smooth_sigma_px=sm) <= max_sigma]
         seeds.append(grid)
         kinds.append(np.array(["grid"] * len(grid)))
         sidx.append(np.full(len(grid), -1))

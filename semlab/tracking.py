@@ -49,6 +49,7 @@ __all__ = [
     "median_outliers",
     "shi_tomasi_seeds",
     "grid_seeds",
+    "seed_sigma_px",
     "track_reverse",
     "tracks_to_records",
     "write_tracks_csv",
@@ -128,11 +129,11 @@ class Tracks:
 
 def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_threshold_px=0.5,
                   min_zncc=0.7, direct_correction=True, progress=True, seed_kind=None,
-                  max_sigma_px=0.05, outlier_threshold=2.0, n_neighbours=8,
+                  max_sigma_px="auto", outlier_threshold=2.0, n_neighbours=8,
                   max_jump_px=None, subset_half_window=None, max_gap_frames=3,
                   lk_check_px=0.2, register=None, target_sigma_px=None, max_half_window=20,
                   curvature_neighbours=9, max_residual_ratio=2.0,
-                  smooth_sigma_px=None):
+                  smooth_sigma_px=None, model_neighbours=12):
     """Track points seeded in the last frame backwards in time to frame 0.
 
     With ``register``, every frame is first registered to the reference by one global
@@ -186,7 +187,9 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
     (both directions see the same noise), hence checks 5-6. On a synthetic series with
     white noise, real errors have heavy tails (up to ~8 sigma_px at signal-to-noise ~1.5,
     partly the noise-induced interpolation bias of sub-pixel matching), which is why the
-    default ``max_sigma_px`` is a tenth of the 0.5 px error budget. The translation-only LK
+    default ``max_sigma_px`` is a tenth of the 0.5 px error budget (a fifth for subsets sized
+    by their information, whose σ also counts the model error, see ``model_neighbours``).
+    The translation-only LK
     window is also biased by strain between the frame and the reference (about
     ``strain x win_size / 4`` px); use ``method="subset"`` (affine subsets) where strains
     exceed ~2 %.
@@ -218,8 +221,15 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         Show a tqdm progress bar over frames.
     seed_kind : str or (N,) sequence of str, optional
         Label(s) stored in ``Tracks.seed_kind`` (default ``"seed"``).
-    max_sigma_px : float or None
-        Largest predicted 1-sigma error of a valid step, pixels.
+    max_sigma_px : float, "auto" or None
+        Largest predicted 1-sigma error of a valid step, pixels. ``"auto"``: 0.05 (a tenth
+        of the 0.5 px error budget), 0.1 (a fifth) with ``target_sigma_px``, whose σ is the
+        Gauss–Newton covariance with the a posteriori residual factor and the model error
+        of ``model_neighbours``: on the 8-frame polished / real:fei / real:quartz series of
+        ``benchmarks/tracking_series.py`` (609 grid seeds) the sized subsets with 0.1 and
+        the noise σ alone kept 0 / 19 / 5 valid steps more than 0.5 px off (errors 5–12 σ
+        beside the slip bands, where a 41 px subset straddles a 3–5 px slip step), with
+        the model error counted 0 / 1 / 0.
     outlier_threshold : float or None
         Threshold of the normalised median test (2 is Westerweel & Scarano's value).
     n_neighbours : int
@@ -274,6 +284,16 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
         at the first step; smoothed sized subsets keep 3 % there, and 76 % with
         ``max_sigma_px=0.1`` (0.22–0.5 in frames 1–5, 1 % in frame 0, none 0.5 px off,
         RMS 0.11 px).
+    model_neighbours : int or None
+        With ``target_sigma_px``: each step's σ also holds the model error of its affine
+        subset, measured per frame from how far the displacements of the ``model_neighbours``
+        nearest converged tracks (more where the subsets are larger than their spacing)
+        depart from a local plane beyond what their own σ explains
+        (:func:`semlab.match_sigma.parallax_model_error` on each component, the larger
+        kept), and the a posteriori factor of its residual
+        (:func:`semlab.match_sigma.match_sigma`). A subset over a slip step fits a blend
+        whose residual the noise of a weak texture hides; its neighbours' field is not
+        planar there. None: the noise σ alone.
     register : {None, "similarity", "affine", "translation"} or Registration
         Track in the registered geometry: the transform model to estimate, or a
         precomputed :class:`~semlab.registration.Registration` of these frames (reference
@@ -339,6 +359,7 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             target_sigma_px) and target_sigma_px > 0):
         raise TrackingError(f"target_sigma_px={target_sigma_px!r}: subsets sized by their "
                             "information need method='subset' and a target > 0 pixels")
+    max_sigma_px = _max_sigma(max_sigma_px, target_sigma_px)
     win_size = int(win_size)
     if win_size < 5 or win_size % 2 == 0:
         raise TrackingError(f"win_size must be an odd integer >= 5, got {win_size}")
@@ -492,6 +513,10 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
             sx = np.asarray(res.sigma_px, float).reshape(n, 2)
             fin = ok & np.isfinite(sx).all(axis=1)
             sig[k] = np.where(fin, np.where(np.isfinite(sx), sx, 0).max(axis=1), np.inf)
+            if target_sigma_px is not None and model_neighbours is not None:
+                sig[k] = _with_model_error(seeds, moved(pos, k, ref) - seeds, sig[k], hw_k,
+                                           np.asarray(res.residual_ratio, float),
+                                           int(model_neighbours))
         else:
             z = _zncc(ref_patches, _sample_patches(
                 norm[k], pos, half, None if reg is None else reg.transforms[k].matrix[:2, :2]))
@@ -549,7 +574,76 @@ def track_reverse(frames, seeds, method="lk", win_size=21, max_level=3, fb_thres
                   max_half_window=max_half_window if target_sigma_px is not None else None,
                   curvature_neighbours=curvature_neighbours if target_sigma_px is not None
                   else None, max_residual_ratio=max_residual_ratio,
-                  smooth_sigma_px=smooth_sigma_px)
+                  smooth_sigma_px=smooth_sigma_px,
+                  model_neighbours=model_neighbours if target_sigma_px is not None else None)
     return Tracks(xy=xy, fb_error_px=fb, valid=valid, zncc=zn, sigma_px=sig, gap_frames=gap, seed_kind=kinds,
                   subset_px=side if method == "subset" else None,
                   reference_frame=ref, method=method, params=params, registration=reg)
+
+
+def _with_model_error(seeds, disp, sigma, half_window, residual_ratio, k):
+    """Steps' σ with the a posteriori residual factor and the model error of their affine
+    subsets from the neighbours' displacement field (see ``track_reverse``'s
+    ``model_neighbours``); inf stays inf."""
+    from scipy.spatial import cKDTree
+
+    from .match_sigma import match_sigma, parallax_model_error
+
+    out = np.asarray(sigma, float).copy()
+    idx = np.flatnonzero(np.isfinite(out) & np.isfinite(disp).all(axis=1))
+    if len(idx) < 4:
+        return out
+    p = seeds[idx]
+    d, _ = cKDTree(p).query(p, k=2)
+    spacing = float(np.median(d[:, 1]))
+    h = np.asarray(half_window, float)[idx]
+    m = np.fmax(*[parallax_model_error(p, disp[idx, c], out[idx], h, k=min(k, len(idx)),
+                                       spacing_px=spacing) for c in (0, 1)])
+    out[idx] = match_sigma(out[idx], residual_ratio[idx], m)
+    return out
+
+
+def _max_sigma(max_sigma_px, target_sigma_px):
+    """``track_reverse``'s ``max_sigma_px`` with ``"auto"`` resolved."""
+    if isinstance(max_sigma_px, str):
+        if max_sigma_px != "auto":
+            raise TrackingError(f"max_sigma_px={max_sigma_px!r}: give pixels, 'auto' or None")
+        return 0.05 if target_sigma_px is None else 0.1
+    return max_sigma_px
+
+
+def seed_sigma_px(frame, seeds, half_window=20, smooth_sigma_px=0.8):
+    """Predicted 1σ of matching each seed's subset against an equally noisy copy, pixels.
+
+    The Gauss–Newton σ of :func:`semlab.subset.icgn_refine` (affine subset of half size
+    ``half_window``, ``smooth_sigma_px`` pre-smoothing) with the noise measured in the frame
+    (:func:`semlab.noise.image_noise_sigma`, on the contrast-stretched frame as tracking sees
+    it): the best any tracking step of that seed can reach (the earlier frames of a test
+    have less contrast, not more). A seed whose σ exceeds a step's ``max_sigma_px`` even
+    here can never give a valid step.
+
+    Parameters
+    ----------
+    frame : (H, W) array
+        The reference (last) frame.
+    seeds : (N, 2) array of (x, y) pixels
+    half_window : int
+        Subset half size (the largest a sized step may use: ``max_half_window``).
+
+    Returns
+    -------
+    (N,) array of pixels (the larger of x and y; inf where the subset leaves the frame or
+    has no texture).
+    """
+    from .noise import image_noise_sigma
+    from .subset import icgn_refine
+
+    f01 = normalize_frame(_as_2d(frame, "frame"))[0].astype(np.float64)
+    p = np.asarray(seeds, float).reshape(-1, 2)
+    if not len(p):
+        return np.zeros(0)
+    r = icgn_refine(f01, f01, p, p, half_window=int(half_window), warp="affine",
+                    smooth_sigma_px=float(smooth_sigma_px), noise_sigma=image_noise_sigma(f01))
+    sx = np.asarray(r.sigma_px, float).reshape(-1, 2)
+    ok = np.asarray(r.converged, bool) & np.isfinite(sx).all(axis=1)
+    return np.where(ok, np.where(ok[:, None], sx, 0).max(axis=1), np.inf)

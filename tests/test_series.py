@@ -8,7 +8,7 @@ import pytest
 import semlab
 from semlab import series
 from semlab.errors import SemlabError
-from semlab.tracking import grid_seeds
+from semlab.tracking import grid_seeds, seed_sigma_px
 
 
 def test_grid_seeds_cover_the_frame_evenly_and_avoid_existing_seeds():
@@ -23,6 +23,20 @@ def test_grid_seeds_cover_the_frame_evenly_and_avoid_existing_seeds():
     assert len(grid_seeds((40, 40))) == 0            # smaller than twice the border
     with pytest.raises(SemlabError, match="spacing_px"):
         grid_seeds((96, 128), spacing_px=0)
+
+
+def test_seed_sigma_is_the_information_of_the_subset():
+    """Textured half: small σ, falling with the subset size; flat half: no information."""
+    rng = np.random.default_rng(3)
+    from scipy import ndimage
+
+    img = 100 + 20 * ndimage.gaussian_filter(rng.standard_normal((96, 160)), 1.5)
+    img[:, 80:] = 100.0
+    img = img + 0.5 * rng.standard_normal(img.shape)
+    pts = np.array([[40.0, 48.0], [120.0, 48.0]])
+    s10, s20 = seed_sigma_px(img, pts, half_window=10), seed_sigma_px(img, pts, half_window=20)
+    assert s20[0] < s10[0] < 0.05
+    assert s10[1] > 20 * s10[0]
 
 
 @pytest.fixture(scope="module")
@@ -41,11 +55,25 @@ def test_run_tracking_adds_grid_seeds(small_series):
     corners = series.run_tracking(small_series, progress=False)
     both = series.run_tracking(small_series, progress=False, grid_kw={"spacing_px": 16})
     n_c = (both.seed == "corner").sum()
-    assert n_c == corners.tracks.n_tracks and (both.seed == "grid").sum() >= 10
+    assert n_c == corners.tracks.n_tracks and (both.seed == "grid").sum() >= 5
     assert np.array_equal(both.tracks.xy[-1][:n_c], corners.tracks.xy[-1])
     g = both.tracks.xy[-1][both.seed == "grid"]
-    assert np.allclose(g, grid_seeds((128, 160), spacing_px=16,
-                                     avoid=corners.tracks.xy[-1]))
+    full = grid_seeds((128, 160), spacing_px=16, avoid=corners.tracks.xy[-1])
+    last = small_series.frames(progress=False)[-1]
+    # without the points whose 21x21 subset cannot reach LK's max_sigma_px (0.05) at all
+    assert np.allclose(g, full[seed_sigma_px(last, full, half_window=10, smooth_sigma_px=0)
+                               <= 0.05])
+    assert (corners.seed == "grid").sum() == 0           # LK: "auto" adds no grid
+    # sized subsets: "auto" seeds the grid where the last frame's subsets can reach the
+    # steps' max_sigma_px (here everywhere but where the texture is weakest)
+    sized = series.run_tracking(small_series, method="subset", progress=False,
+                                track_kw={"target_sigma_px": 0.02})
+    g = sized.tracks.xy[-1][sized.seed == "grid"]
+    full = grid_seeds((128, 160), avoid=corners.tracks.xy[-1])
+    assert 0 < len(g) <= len(full)
+    assert np.all(seed_sigma_px(last, g) <= 0.1)
+    with pytest.raises(SemlabError, match="grid_kw"):
+        series.run_tracking(small_series, progress=False, grid_kw="yes")
 
 
 @pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")

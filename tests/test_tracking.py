@@ -424,12 +424,49 @@ def test_residual_check_flags_subsets_over_a_slip_step():
         n_bad = {}
         for rr in (None, 2.0):
             tr = track_reverse(frames, seeds, method="subset", progress=False,
-                               outlier_threshold=None, max_residual_ratio=rr, **kw)
+                               outlier_threshold=None, max_residual_ratio=rr,
+                               model_neighbours=None, **kw)
             e = np.linalg.norm(tr.xy[0] - true0, axis=1)
             n_bad[rr] = int((tr.valid[0] & (e > 0.3)).sum())
             if rr:
                 assert tr.valid[0][off_step].all()
         assert n_bad[None] >= 20 and n_bad[2.0] == 0, n_bad
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_sized_steps_count_the_model_error_of_their_neighbourhood():
+    """A 1.2 px slip step under noise 4x weaker than the texture: sized subsets over the
+    step match a blend whose residual the noise hides (the residual check keeps ~30 steps
+    0.3-0.7 px off). Counting the model error of the neighbours' displacement field in each
+    step's σ (``model_neighbours``, default 12) makes most of them invalid; ``"auto"``
+    max_sigma_px is 0.1 px with sized subsets, 0.05 px otherwise."""
+    rng = np.random.default_rng(0)
+    tex, pad = _texture(rng, (140, 200))
+    yy, xx = np.mgrid[0:140, 0:200].astype(float)
+
+    def frame(step_px, seed, noise=10.0):
+        ux = np.where(yy >= 70, step_px, 0.0)
+        img = ndimage.map_coordinates(tex, [yy + pad, xx - ux + pad], order=3)
+        return 100 + 40 * img + noise * np.random.default_rng(seed).standard_normal(img.shape)
+
+    frames = [frame(1.2, 1), frame(0.0, 2)]
+    gx, gy = np.meshgrid(np.arange(30, 171, 10.0), np.arange(25, 116, 5.0))
+    seeds = np.column_stack([gx.ravel(), gy.ravel()])
+    true0 = seeds + np.where(seeds[:, 1] >= 70, 1.2, 0.0)[:, None] * [1, 0]
+    n_bad, n_valid = {}, {}
+    for mn in (None, 12):
+        tr = track_reverse(frames, seeds, method="subset", progress=False, target_sigma_px=0.02,
+                           model_neighbours=mn)
+        e = np.linalg.norm(tr.xy[0] - true0, axis=1)
+        n_bad[mn], n_valid[mn] = int((tr.valid[0] & (e > 0.3)).sum()), int(tr.valid[0].sum())
+        assert tr.params["max_sigma_px"] == 0.1
+    assert n_bad[None] >= 20 and n_bad[12] <= 0.3 * n_bad[None], n_bad
+    assert n_valid[12] >= 100, n_valid                     # the clean rows stay valid
+    clean = [frame(0.0, 3, noise=0.4), frame(0.0, 4, noise=0.4)]
+    assert track_reverse(clean, seeds[:20], method="subset",
+                         progress=False).params["max_sigma_px"] == 0.05
+    with pytest.raises(TrackingError, match="max_sigma_px"):
+        track_reverse(frames, seeds, max_sigma_px="big", progress=False)
 
 
 @pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
