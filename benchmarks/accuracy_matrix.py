@@ -24,7 +24,9 @@ Methods, all scored at the same points
 Point sets per cell: the **clicks** semlab refined (``pipeline.run_stereo(...,
 method="refined")``) and the points semlab's **automatic** matching accepted (``"auto"``),
 each with fixed subsets and, where semlab has them, with information-sized subsets
-(``target_sigma_px=0.05``: ``clicks adaptive``, ``auto adaptive``). At each
+(``target_sigma_px=0.05``: ``clicks adaptive``, ``auto adaptive``), and the automatic
+points sized by their predicted total error, noise and curvature bias (``auto total``:
+``target_sigma_px=0, curvature_neighbours=1``, each point at its smallest). At each
 set's view-0 positions the references are computed in the same run on the same images:
 
 Where semlab's automatic matching finds no point (``featureless``), the references are scored
@@ -156,9 +158,17 @@ def semlab_variants():
     if "target_sigma_px" not in names:
         return [("clicks", "refined", {}), ("auto", "auto", {})]
     fixed = {"target_sigma_px": None}  # refine_correspondences may size subsets by default
-    return [("clicks", "refined", {"refine": fixed}), ("auto", "auto", {"auto": fixed}),
-            ("clicks adaptive", "refined", {"refine": {"target_sigma_px": 0.05}}),
-            ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05}})]
+    out = [("clicks", "refined", {"refine": fixed}), ("auto", "auto", {"auto": fixed}),
+           ("clicks adaptive", "refined", {"refine": {"target_sigma_px": 0.05}}),
+           ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05}})]
+    if "curvature_neighbours" in names:
+        # noise-only sizing stays noise-only; "auto total": total-error sizing, each point
+        # at its smallest predicted total error (noise and curvature bias)
+        out[3] = ("auto adaptive", "auto", {"auto": {"target_sigma_px": 0.05,
+                                                     "curvature_neighbours": None}})
+        out.append(("auto total", "auto", {"auto": {"target_sigma_px": 0.0,
+                                                    "curvature_neighbours": 1}}))
+    return out
 
 
 def semlab_heights(exp, method, **match_kw):
@@ -292,7 +302,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None):
             sh = semlab_heights(exp, method, **match_kw)
         except Exception as exc:  # a failing method is a result, not a crash of the table
             rows.append({"set": set_name, "method": f"semlab {method}", "fail": str(exc)[:80]})
-            if set_name.startswith("clicks") or set_name == "auto adaptive":
+            if set_name.startswith("clicks") or set_name in ("auto adaptive", "auto total"):
                 continue
             # the references are still scored, on the whole 8-px grid
             sh, set_name = None, "grid (semlab found none)"
@@ -309,7 +319,8 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None):
         crb = float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
         refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
         df = refs["DeepFlow"]["rmse"]
-        label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else "")
+        label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else
+                                       " total" if "total" in set_name else "")
         own = [] if sem is None else [(label, sem)]
         for name, r in own + list(refs.items()):
             rows.append({"set": set_name, "method": name, "cov": cov, "df_ratio": r["rmse"] / df,
@@ -345,8 +356,9 @@ def summary(cells):
     """One line per cell: height RMSE (nm) of every method at the same points (the README's)."""
     lines = ["| regime | noise | tilts | automatic: semlab (N, coverage) | DeepFlow | ECC 15px "
              "| DIS fine | CRB 21² | adaptive automatic: semlab (N) | DeepFlow "
-             "| refined clicks: semlab | ECC 15px | DeepFlow | adaptive refined: semlab | ECC 15px |",
-             "|" + "---|" * 16]
+             "| refined clicks: semlab | ECC 15px | DeepFlow | adaptive refined: semlab | ECC 15px "
+             "| total-error automatic: semlab (N) | DeepFlow |",
+             "|" + "---|" * 18]
     for (regime, noise, tilts), rows in cells:
         by = {(r["set"].replace("grid (semlab found none)", "auto"), r["method"]): r for r in rows}
 
@@ -365,13 +377,17 @@ def summary(cells):
         aa = by.get(("auto adaptive", "semlab auto adaptive"), {})
         adaptive = (f"{rm(('auto adaptive', 'semlab auto adaptive'))} ({aa['n']})"
                     if aa and "fail" not in aa else rm(("auto adaptive", "semlab auto adaptive")))
+        at = by.get(("auto total", "semlab auto total"), {})
+        total = (f"{rm(('auto total', 'semlab auto total'))} ({at['n']})"
+                 if at and "fail" not in at else rm(("auto total", "semlab auto total")))
         lines.append(f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {auto} | "
                      f"{rm(('auto', 'DeepFlow'))} | {rm(('auto', 'ECC 15px'))} | "
                      f"{rm(('auto', 'DIS fine'))} | {crb} | {adaptive} | "
                      f"{rm(('auto adaptive', 'DeepFlow'))} | {rm(('clicks', 'semlab refined'))} | "
                      f"{rm(('clicks', 'ECC 15px'))} | {rm(('clicks', 'DeepFlow'))} | "
                      f"{rm(('clicks adaptive', 'semlab refined adaptive'))} | "
-                     f"{rm(('clicks adaptive', 'ECC 15px'))} |")
+                     f"{rm(('clicks adaptive', 'ECC 15px'))} | {total} | "
+                     f"{rm(('auto total', 'DeepFlow'))} |")
     return "\n".join(lines)
 
 

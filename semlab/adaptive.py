@@ -26,7 +26,7 @@ matched, the bias coefficient of each point is estimated from how its estimates 
 the size (weighted least squares of ``u_h`` on ``h (h + 1) / 6``), averaged over its
 nearest neighbours and de-biased by its variance, and the subset chosen is the smallest
 whose predicted total error ``√(σ_h² + b_h²)`` reaches the target, else the one with the
-smallest total error.
+smallest total error (``target_sigma_px=0``: always the smallest total error).
 
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
@@ -67,7 +67,8 @@ class AdaptiveResult:
     shape_function : (N,) str array
         ``"affine"``, ``"translation"`` or ``""`` (no match).
     target_met : (N,) bool array
-        True where ``max(sigma_px) <= target_sigma_px``.
+        True where ``max(sigma_px) <= target_sigma_px`` (with ``curvature_neighbours``: the
+        predicted total error; with the target 0: where a size that fits was chosen).
     target_sigma_px : float
         The target.
     bias_px : (N,) float array or None
@@ -106,7 +107,9 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
         Reference points and guesses ``(x, y)`` in pixels (see
         :func:`semlab.subset.icgn_refine`).
     target_sigma_px : float
-        Wanted predicted 1σ of the matched position (the larger of x and y), pixels.
+        Wanted predicted 1σ of the matched position (the larger of x and y), pixels. With
+        ``curvature_neighbours``, 0 means no target: each point takes the size with the
+        smallest predicted total error (its mean-square-error optimum over the ladder).
     half_windows : sequence of int
         Subset half sizes tried, increasing; the last is the largest allowed.
     warp : {"auto", "affine", "translation"}
@@ -130,8 +133,11 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     SemlabError
         On an invalid target, sizes or ``warp``.
     """
-    if not (np.isfinite(target_sigma_px) and target_sigma_px > 0):
-        raise SemlabError(f"target_sigma_px must be > 0, got {target_sigma_px!r}")
+    total = curvature_neighbours is not None
+    if not (np.isfinite(target_sigma_px) and (target_sigma_px > 0
+                                              or (total and target_sigma_px == 0))):
+        raise SemlabError(f"target_sigma_px must be > 0 (or 0 with curvature_neighbours: "
+                          f"the smallest total error), got {target_sigma_px!r}")
     hs = [int(h) for h in half_windows]
     if not hs or any(b <= a for a, b in zip(hs, hs[1:])) or hs[0] < 2:
         raise SemlabError(f"half_windows must be increasing integers >= 2, got {half_windows!r}")
@@ -313,7 +319,8 @@ def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_
         if len(rows):
             best = _assign(best, rows, runs[k], rows)
     idx = np.arange(n)
-    met = conv & ok[choice, idx]
+    # no target (0): a point is at its optimum where a fitting size was chosen
+    met = conv & (any_fit if target == 0 else ok[choice, idx])
     t_ch = tot[choice, idx]
     reason = np.array(best.reason, dtype=object)
     for i in np.flatnonzero(conv & ~met):
@@ -361,7 +368,9 @@ def _ladder(h_min, h_max):
     """Subset half sizes from h_min to h_max growing by ~1.4 (√2: twice the pixels)."""
     hs = [int(h_min)]
     while hs[-1] < h_max:
-        hs.append(min(int(h_max), max(hs[-1] + 1, int(round(hs[-1] * 1.4)))))
+        nxt = min(int(h_max), max(hs[-1] + 1, int(round(hs[-1] * 1.4))))
+        # no step of a few percent at the top (39 then 40): go straight to h_max
+        hs.append(int(h_max) if nxt * 1.15 >= h_max else nxt)
     return tuple(hs)
 
 

@@ -87,7 +87,7 @@ class AutoMatchParams:
     Stages: prior (``detector``, ``ratio``, ``max_features``, ``dense_init``,
     ``dense_prior_below``, ``wide_search_px``), grid matching (``spacing_px``,
     ``half_window``, ``search_px``, ``smooth_sigma_px``, ``max_iter``, ``tol_px``,
-    ``target_sigma_px``, ``max_half_window``, ``band_aware``, ``band_half_width_px``,
+    ``target_sigma_px``, ``max_half_window``, ``curvature_neighbours``, ``band_aware``, ``band_half_width_px``,
     ``kappa``, ``epipolar``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
     ``max_roughness_px``, ``backward_px``, ``backward_sigma_p``, ``multiview_px``).
     """
@@ -120,6 +120,7 @@ class AutoMatchParams:
     max_half_window: int = 28
     epipolar: bool = True
     backward_sigma_p: float = None
+    curvature_neighbours: int = None
 
 
 def auto_match(images, params=None, *, progress=True, features=None, **overrides):
@@ -282,6 +283,14 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         Size each grid point's subset by its information, from ``half_window`` up to
         ``max_half_window`` (see :func:`refine_correspondences`); the forward–backward
         check uses each point's own subset. None: one fixed ``half_window``.
+    curvature_neighbours : int or None
+        With ``target_sigma_px``: size each grid point by its predicted total error, the
+        noise σ and the curvature bias estimated from how its match moves with the subset
+        size, averaged over this many nearest grid points (1: each alone;
+        :func:`semlab.adaptive.adaptive_icgn`); every size of the ladder is matched.
+        ``target_sigma_px=0`` then takes each point's smallest predicted total error. The
+        chosen size's bias is the point's model error (instead of the neighbourhood's
+        non-affine parallax, stage 7b). None: sized by the noise alone.
     epipolar : bool
         Run the epipolar stage 6b (the forward–backward check of its points is along the
         epipolar direction too).
@@ -351,6 +360,8 @@ class _AutoState:
     ref_cache: dict = field(default_factory=dict)
     fwd_state: dict = field(default_factory=dict)  # view -> state of the backward check
     model_x: np.ndarray = None  # (n, v) model error
+    bias: np.ndarray = None     # (n, v) curvature bias of the sized subsets, pixels (NaN:
+    #                             not measured)
 
     @property
     def n(self):
@@ -405,7 +416,7 @@ def _stage_setup(images, params):
         params=p, ims=ims, v=v, ref=ref, grid=grid, gidx=gidx, out=out, zn=zn,
         sig_x=np.zeros((n, v)), sig_ap=np.zeros((n, v)), valid=np.ones(n, bool),
         reason=np.full(n, "", dtype=object), side=np.zeros(n, int),
-        epi=np.zeros((n, v), bool), noise0=noise0, eps=eps,
+        epi=np.zeros((n, v), bool), bias=np.full((n, v), np.nan), noise0=noise0, eps=eps,
         sub_std=_subset_std(ims[ref], p.half_window, grid), ref8=_to_uint8(ims[ref]),
         smooth_sigma_px=sm, ref_coef=None if sm is None else prefilter_image(ims[ref], sm))
 
@@ -520,10 +531,13 @@ def _stage_grid_match(st, view, progress):
         st.ref_coef = prefilter_image(ims[ref], st.smooth_sigma_px)
     sm, ref_coef = st.smooth_sigma_px, st.ref_coef
     cur_coef = prefilter_image(ims[j], sm)
-    r, hw_j = _grid_icgn(ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0),
-                         p.half_window, "affine", init_w, sm, ref_coef,
-                         cur_coef, p.target_sigma_px, p.max_half_window, progress=progress,
-                         max_iter=p.max_iter, tol_px=p.tol_px)
+    total = p.curvature_neighbours is not None and p.target_sigma_px is not None
+    r, hw_j, bias_j = _grid_icgn(
+        ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0), p.half_window,
+        "affine", init_w, sm, ref_coef, cur_coef, p.target_sigma_px, p.max_half_window,
+        return_bias=True, progress=progress, max_iter=p.max_iter, tol_px=p.tol_px,
+        **({"curvature_neighbours": p.curvature_neighbours} if total else {}))
+    view.bias_j = bias_j if total else None
     st.side[st.work] = np.maximum(st.side[st.work], np.where(r.converged, 2 * hw_j + 1, 0))
     ok_j = r.converged & (r.zncc >= p.min_zncc)
     pts_j, sig_j, rr_j = r.pts, r.sigma_px[:, 0], r.residual_ratio
@@ -563,6 +577,10 @@ def _stage_record(st, view):
     st.zn[work, j] = view.zn_j
     st.sig_x[work, j] = view.sig_j
     st.sig_ap[work, j] = aposteriori_sigma(view.sig_j, view.rr_j)
+    # the square subset's curvature bias (total-error sizing); NaN: none measured (fixed
+    # or noise-only sizing, or an epipolar match)
+    st.bias[work, j] = np.where(st.epi[work, j] | (view.bias_j is None), np.nan,
+                                0.0 if view.bias_j is None else view.bias_j)
     for k in np.flatnonzero(~view.ok_j):
         i = work[k]
         if not r.converged[k]:
@@ -621,6 +639,13 @@ def _filter_roughness(st):
         model_x[idx, j] = parallax_model_error(grid[idx], pa[idx], sig_x[idx, j],
                                                (side[idx] - 1) // 2, quadratic=curved,
                                                spacing_px=p.spacing_px)
+        # with total-error sizing each point's own curvature bias, measured from how its
+        # match moves with the subset size, replaces the neighbourhood's estimate (scaled
+        # to a grown subset by the moments of a quadratic parallax it counts the same
+        # curvature again: polished/low ±5°, 87 % within 1σ, efficiency 2.3, instead of
+        # 62 % and 1.10 with the bias alone)
+        b = st.bias[idx, j]
+        model_x[idx, j] = np.where(np.isfinite(b), b, model_x[idx, j])
         if p.max_roughness_px is None:
             continue
         # a surface rough all over (a pollen grain's reticulum) is not a steep flank:

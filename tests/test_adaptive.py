@@ -156,3 +156,11 @@ def test_curvature_aware_sizing_on_a_sinusoidal_displacement():
     assert all(r.startswith(TARGET_MISSED) for r in curved.subset.reason[curved.subset.converged])
     with pytest.raises(SemlabError, match="curvature_neighbours"):
         adaptive_icgn(ref, cur, pts[:3], pts[:3], curvature_neighbours=0)
+    # target 0: no target, each point at its smallest predicted total error; the target
+    # above was out of reach, so the same choice, now reported as met (a size that fits)
+    best = adaptive_icgn(ref, cur, pts, pts, curvature_neighbours=9,
+                         **{**kw, "target_sigma_px": 0.0})
+    assert np.array_equal(best.half_window, curved.half_window)
+    assert np.allclose(best.subset.pts, curved.subset.pts, equal_nan=True)
+    assert best.target_met[best.subset.converged].mean() > 0.95
+    assert all(r == "" for r in best.subset.reason[best.target_met])
