@@ -1,7 +1,7 @@
 """The series chain of ``semlab run`` (tracking, then strain) on low-texture and real-texture series.
 
 Run:  python benchmarks/tracking_series.py [--cases polished,real:fei,real:quartz]
-      [--configs "default;subset-sized;subset-sized, corners only"] [--drift]
+      [--configs "default;lk;default, corners only"] [--drift]
 
 Each case is an 8-frame 384×512 frontal series with the deformation growing over the cycles
 (:mod:`semlab.synth`'s schedule: slip bands plus a uniform strain of 1 % / −0.5 % / 0.4 %),
@@ -16,13 +16,14 @@ realistic detector noise (shot noise, gain/offset, 8 bit):
 re-magnified by up to 0.2 % (stage drift).
 
 The chain is what :class:`semlab.Analysis` runs (``series.run_tracking`` with the
-configuration's ``track_method`` / ``track_target_sigma_px``, then ``series.run_strain``) on a
+configuration's ``track_method`` / ``track_target``, then ``series.run_strain``) on a
 series-only experiment (Shi–Tomasi seeds in the last frame). ``default`` is
-:class:`semlab.AnalysisConfig`'s default (LK), ``subset-sized`` its subset tracker sized by
-the information (``track_target_sigma_px=0.02``: with it ``run_tracking`` also seeds a grid
-where the texture allows valid steps, and the steps' σ count the model error, see
-``track_reverse``'s ``max_sigma_px`` and ``model_neighbours``), ``subset-sized, corners
-only`` the same without the grid. The truth of every track comes from the scene's own
+:class:`semlab.AnalysisConfig`'s default (since 2026-12-02: subsets sized by their
+information, ``track_target_sigma_px=0.02``, with which ``run_tracking`` also seeds a grid
+where the texture allows valid steps and the steps' σ count the model error, see
+``track_reverse``'s ``max_sigma_px`` and ``model_neighbours``), ``lk`` the former default
+(pyramidal Lucas–Kanade on the corners), ``default, corners only`` the default without the
+grid. The truth of every track comes from the scene's own
 displacement field at the seed (end-state) position; the strain's truth is the Green–Lagrange
 strain from the reference frame the run chose to the end, ``F = (I − (1 − f_r) ∂U/∂x)⁻¹``.
 
@@ -49,9 +50,8 @@ from semlab.errors import SemlabError
 STRAIN = (0.01, -0.005, 0.004)
 #: name -> (AnalysisConfig fields, extra keywords of series.run_tracking)
 CONFIGS = {"default": ({}, {}),
-           "subset-sized": ({"track_method": "subset", "track_target_sigma_px": 0.02}, {}),
-           "subset-sized, corners only": ({"track_method": "subset",
-                                           "track_target_sigma_px": 0.02}, {"grid_kw": None})}
+           "lk": ({"track_method": "lk"}, {}),
+           "default, corners only": ({}, {"grid_kw": None})}
 
 
 def make_case(case, out, seed=0, drift=False, n_frames=8):
@@ -132,8 +132,7 @@ def run_case(case, config, seed=0, drift=False):
     with tempfile.TemporaryDirectory() as tmp:
         toml, scene = make_case(case, Path(tmp) / "e", seed=seed, drift=drift)
         exp = experiment.load(toml)
-        kw = {} if cfg.track_target_sigma_px is None else {
-            "target_sigma_px": float(cfg.track_target_sigma_px)}
+        kw = {} if cfg.track_target is None else {"target_sigma_px": float(cfg.track_target)}
         t0 = time.perf_counter()
         try:
             with warnings.catch_warnings(record=True):

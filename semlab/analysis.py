@@ -69,12 +69,19 @@ class AnalysisConfig:
         Bootstrap resamples of the height error bars (0: matching σ only).
     seed : int
         Seed of the bootstrap.
-    track_method : {"lk", "subset"}
-        Pyramidal Lucas–Kanade or IC-GN subsets for the tracking steps.
-    track_target_sigma_px : float or None
+    track_method : {"subset", "lk"}
+        IC-GN subsets (default) or pyramidal Lucas–Kanade for the tracking steps. On the
+        8-frame polished / real:fei / real:quartz series of
+        ``benchmarks/tracking_series.py`` LK (the default before 2026-12-02) lost every
+        track of the polished one at the first step and gave no strain on quartz (21 % of
+        52 corner tracks valid one step back); the sized subsets keep 55 / 63 / 88 % there,
+        with strain from frames 4 / 0 / 0.
+    track_target_sigma_px : float, None or "auto"
         With ``track_method="subset"``: size each step's subset by its information and the
-        displacement's curvature (``track_reverse(target_sigma_px=...)``, pixels); None:
-        fixed 21×21 subsets.
+        displacement's curvature (``track_reverse(target_sigma_px=...)``, pixels; the
+        tracking then also seeds a grid where the texture allows valid steps, see
+        :func:`semlab.series.run_tracking`); None: fixed 21×21 subsets, corner seeds.
+        ``"auto"`` (default): 0.02 with subsets, None with LK.
     gauge_length_px : float or None
         Gauge length of the sparse strain (None: from the track density).
     heightmap : bool
@@ -93,8 +100,8 @@ class AnalysisConfig:
     stereo_method: str | None = None
     n_boot: int = 200
     seed: int = 0
-    track_method: str = "lk"
-    track_target_sigma_px: float | None = None
+    track_method: str = "subset"
+    track_target_sigma_px: float | str | None = "auto"
     gauge_length_px: float | None = None
     heightmap: bool = True
     heightmap_roi: tuple | None = None
@@ -117,7 +124,7 @@ class AnalysisConfig:
                               "raw, refined, auto, merged (or None)")
         if self.track_method not in TRACK_METHODS:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
-        t = self.track_target_sigma_px
+        t = self.track_target
         if t is not None and not (self.track_method == "subset" and isinstance(t, (int, float))
                                   and not isinstance(t, bool) and t > 0):
             raise SemlabError(f"track_target_sigma_px = {t!r}: give a target > 0 pixels with "
@@ -132,6 +139,18 @@ class AnalysisConfig:
         if self.gauge_length_px is not None and not self.gauge_length_px > 0:
             raise SemlabError(f"gauge_length_px = {self.gauge_length_px!r}: give a length > 0 "
                               "in pixels, or None")
+
+    @property
+    def track_target(self):
+        """``track_target_sigma_px`` with ``"auto"`` resolved (0.02 px with subsets, None
+        with LK)."""
+        t = self.track_target_sigma_px
+        if isinstance(t, str):
+            if t != "auto":
+                raise SemlabError(f"track_target_sigma_px = {t!r}: give a target > 0 pixels, "
+                                  "'auto' or None")
+            return 0.02 if self.track_method == "subset" else None
+        return t
 
     @classmethod
     def fields(cls):
@@ -160,7 +179,7 @@ class AnalysisConfig:
         """The settings ``step`` depends on (with those of the steps it uses)."""
         own = {"stereo": ("stereo_method", "n_boot", "seed"),
                "heightmap": ("heightmap_roi", "heightmap_method"),
-               "tracking": ("track_method", "track_target_sigma_px"),
+               "tracking": ("track_method", "track_target"),
                "strain": ("gauge_length_px",)}
         needs = {"stereo": ("stereo",), "heightmap": ("stereo", "heightmap"),
                  "tracking": ("stereo", "tracking"),
@@ -549,8 +568,8 @@ class Analysis:
                     stereo = (s.pts[:, 0], s.z_um)
                 except StepFailed:
                     stereo = None  # tracking goes on with corner seeds; the stereo step reports
-            kw = None if cfg.track_target_sigma_px is None else {
-                "target_sigma_px": float(cfg.track_target_sigma_px)}
+            kw = None if cfg.track_target is None else {
+                "target_sigma_px": float(cfg.track_target)}
             return series.run_tracking(exp, stereo=stereo, method=cfg.track_method,
                                          track_kw=kw, progress=self.progress)
 

@@ -41,20 +41,23 @@ def test_a_second_analysis_loads_everything_from_the_cache(computed):
 
 def test_a_changed_setting_recomputes_only_the_steps_that_depend_on_it(computed):
     exp, out, an, _ = computed
-    other = semlab.Analysis(exp, out, n_boot=0, track_method="subset", progress=False)
+    other = semlab.Analysis(exp, out, n_boot=0, track_target_sigma_px=None, progress=False)
     other.tracking()
     assert other.computed == ["tracking"]  # the stereo seeds came from the cache
 
 
 def test_tracking_with_subsets_sized_by_information(computed):
+    """The default tracking: subsets sized by their information ("auto": 0.02 px), LK on
+    request (then no target)."""
     exp, out, an, _ = computed
-    other = semlab.Analysis(exp, out, n_boot=0, track_method="subset",
-                            track_target_sigma_px=0.02, progress=False)
-    tr = other.tracking().tracks
-    assert other.computed == ["tracking"]
+    tr = an.tracking().tracks
+    assert an.config.track_target == 0.02 and an.config.track_target_sigma_px == "auto"
     assert tr.params["target_sigma_px"] == 0.02 and tr.method == "subset"
+    assert semlab.AnalysisConfig(track_method="lk").track_target is None
+    other = semlab.Analysis(exp, out, n_boot=0, track_method="lk", progress=False)
+    assert other.tracking().tracks.method == "lk" and other.computed == ["tracking"]
     with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
-        semlab.AnalysisConfig(track_target_sigma_px=0.02)          # LK has no subsets
+        semlab.AnalysisConfig(track_method="lk", track_target_sigma_px=0.02)  # LK: no subsets
     with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
         semlab.AnalysisConfig(track_method="subset", track_target_sigma_px=0)
 

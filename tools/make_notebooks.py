@@ -503,6 +503,7 @@ else:
     tr = an.tracking()
     t = tr.tracks
     print(f"{t.n_tracks} tracks ({(tr.seed == 'corner').sum()} corner-seeded, "
+          f"{(tr.seed == 'grid').sum()} on the grid, "
           f"{(tr.seed == 'stereo').sum()} stereo-seeded), method {t.method}")
     print("valid fraction per frame (0 = earliest):", np.round(t.valid.mean(axis=1), 2))
     if tr.registration:
