@@ -136,6 +136,11 @@ def run_scene(name, kw, tmp, params=None, subset=True):
     out["deep_all_nm"] = 1e3 * float(np.sqrt(np.mean(
         plane_free(zd - truth, interior & np.isfinite(zd)) ** 2)))
     out["var"] = _compare(hv.z_um, hv.sigma_um, hv.valid, zd, truth, interior)
+    from semlab.noise import image_noise_sigma
+
+    out["noise"] = [float(v) for v in hv.parallax.calibration.get("noise_sigma", (np.nan,) * 2)]
+    out["noise_immerkaer"] = [image_noise_sigma(v) for v in exp.views()[:2]]
+    out["prior_scale_px"] = float(hv.parallax.calibration.get("prior_scale_px", np.nan))
     if subset:
         t0 = time.perf_counter()
         hm = heightmap.heightmap_from_stereo(exp, st, params=params)
@@ -176,7 +181,10 @@ def main(argv=None):
             v = r["var"]
             msg = (f"{name}: variational {v['ours_nm']:.1f} nm vs DeepFlow {v['deep_nm']:.1f} nm "
                    f"(ratio {v['ratio']:.2f}, measured {100 * v['measured']:.1f} %, 1σ/2σ "
-                   f"{100 * v['in1']:.0f}/{100 * v['in2']:.0f} %, {r['t_var']:.0f} s)")
+                   f"{100 * v['in1']:.0f}/{100 * v['in2']:.0f} %, {r['t_var']:.0f} s; noise "
+                   f"{r['noise'][0]:.4g}/{r['noise'][1]:.4g} (Immerkær "
+                   f"{r['noise_immerkaer'][0]:.4g}/{r['noise_immerkaer'][1]:.4g}), prior scale "
+                   f"{r['prior_scale_px']:.4g} px)")
             if subset:
                 msg += (f"; subset: measured {100 * r['measured']:.1f} %, {r['ours_nm']:.1f} nm, "
                         f"DeepFlow {r['deep_nm']:.1f} nm (ratio {r['ratio']:.2f}), within 1σ "

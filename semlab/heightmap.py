@@ -58,6 +58,7 @@ __all__ = [
     "height_model_from_tilts",
     "height_model_from_points",
     "dense_heights",
+    "stereo_noise_sigma",
     "heightmap_from_stereo",
     "hillshade",
     "write_heightmap_results",
@@ -493,9 +494,12 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
         Quantities otherwise measured in this call, to share between tiles (e.g. the
         ``calibration`` of a result on a representative window): ``sigma_factor``
         (:func:`sigma_scale`), ``zncc_tau`` (absolute fusion τ), ``noise_sigma`` (image
-        noise of the two views, for the IC-GN σ), ``coef_offset`` (view 1's B-spline
-        coefficient mean). Missing keys are measured: the first two in the window, the
-        last two on the whole images.
+        noise of the two views, for the IC-GN σ; e.g. the stereo matches' calibrated
+        noise, :func:`semlab.noise.calibrated_noise_sigma`), ``coef_offset`` (view 1's
+        B-spline coefficient mean). Missing keys are measured in the window: the noise by
+        :func:`semlab.subset.icgn_refine`'s default (Immerkær's estimate lowered to the
+        dense subsets' residuals, as the matcher measures it), ``coef_offset`` on the
+        whole view 1.
     progress : bool
 
     Returns
@@ -555,18 +559,17 @@ def dense_parallax(view0, view1, seeds=None, roi=None, params=None, guess=None,
     init[:, [1, 2, 4, 5]] = grad.reshape(-1, 4)
     cal = dict(calibration or {})
     whole = roi == (0, 0, wid, hgt)
-    if "noise_sigma" not in cal:
-        from .noise import image_noise_sigma
-
-        cal["noise_sigma"] = (image_noise_sigma(v0), image_noise_sigma(v1))
     if "coef_offset" not in cal and not whole:
         from scipy import ndimage
 
         cal["coef_offset"] = float(ndimage.spline_filter(v1, order=3, mode="mirror").mean())
     r = subset.icgn_refine(ref, cur, pts - [wx0, wy0], gflat - [cx0, cy0], half_window=h,
                            max_iter=p.max_iter, tol_px=p.tol_px, init_warp=init,
-                           noise_sigma=cal["noise_sigma"], coef_offset=cal.get("coef_offset"),
+                           noise_sigma=cal.get("noise_sigma"), coef_offset=cal.get("coef_offset"),
                            progress=progress)
+    # without a given noise, icgn_refine's own calibrated measurement (the matcher's: Immerkær
+    # lowered to the converged subsets' residuals), recorded so that tiles can share it
+    cal.setdefault("noise_sigma", tuple(float(v) for v in r.noise_sigma))
     x1 = (r.pts[:, 0] + cx0).reshape(gh, gw)
     y1 = (r.pts[:, 1] + cy0).reshape(gh, gw)
     sx = r.sigma_px[:, 0].reshape(gh, gw)
@@ -765,19 +768,53 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     method = variational_parallax if isinstance(params, VariationalParams) else None
     if method is not None:
         notes.append("variational parallax (semlab.variational.refine_parallax)")
+    noise, how = stereo_noise_sigma(views[0], views[1], stereo)
+    cal = {"noise_sigma": noise}
+    notes.append(f"image noise σ {noise[0]:.4g}, {noise[1]:.4g} (grey levels) {how}")
+    seeds = stereo.pts[:, :2]
     if t.tiles_map(np.shape(views[0]), roi):
-        par = tiled_parallax(views[0], views[1], seeds=stereo.pts[:, :2], roi=roi,
-                             params=params, method=method, tiling=t, scheduler=scheduler,
+        par = tiled_parallax(views[0], views[1], seeds=seeds, roi=roi, params=params,
+                             method=method, calibration=cal, tiling=t, scheduler=scheduler,
                              progress=progress)
-        hm = _heights(par, model, exp.pixel_size_um)
         notes.append(f"mapped in {t.dense_tile_px} px tiles with one calibration "
                      "(semlab.tiled_stereo.tiled_parallax)")
-    elif method is not None:
-        hm = _heights(variational_parallax(views[0], views[1], seeds=stereo.pts[:, :2],
-                                           roi=roi, params=params), model, exp.pixel_size_um)
     else:
-        hm = dense_heights(views[0], views[1], pixel_size_um=exp.pixel_size_um,
-                           seeds=stereo.pts[:, :2], roi=roi, params=params, model=model,
-                           progress=progress)
+        par = (method or dense_parallax)(views[0], views[1], seeds=seeds, roi=roi,
+                                         params=params, calibration=cal, progress=progress)
+    hm = _heights(par, model, exp.pixel_size_um)
     hm.notes.extend(notes)
     return hm
+
+
+def stereo_noise_sigma(view0, view1, stereo):
+    """Image noise of views 0 and 1 as the stereo step's matcher measured it.
+
+    ``stereo.calibration["noise_sigma"]`` (one σ per view) where the stereo step recorded
+    it; otherwise the same measurement again at its matches of views 0 and 1
+    (:func:`semlab.noise.calibrated_noise_sigma`: :func:`semlab.subset.icgn_refine`'s
+    default, Immerkær's estimate lowered to the matched subsets' residuals), so a run
+    measures its noise one way, for the points and for the dense map.
+
+    Parameters
+    ----------
+    view0, view1 : (H, W) arrays
+    stereo : semlab.pipeline.StereoResult
+        (or any object with ``pts``, (N, V, 2) pixel positions (x, y) per view, and
+        optionally ``calibration``).
+
+    Returns
+    -------
+    noise : (float, float)
+        Noise σ of view 0 and view 1, grey units.
+    how : str
+        Where it came from (for the map's notes).
+    """
+    from .noise import calibrated_noise_sigma
+
+    rec = (getattr(stereo, "calibration", None) or {}).get("noise_sigma")
+    if rec is not None and len(rec) >= 2 and np.all(np.isfinite(np.asarray(rec[:2], float))):
+        return (float(rec[0]), float(rec[1])), "recorded by the stereo step"
+    pts = np.asarray(stereo.pts, float)
+    noise = calibrated_noise_sigma(view0, view1, pts[:, 0], pts[:, 1])
+    return noise, (f"calibrated on the {len(pts)} stereo matches "
+                   "(semlab.noise.calibrated_noise_sigma)")

@@ -8,6 +8,10 @@
   instead of the mean, so edges, particles and saturated specks do not inflate it.
 - :func:`filter_noise_gain`: ``Σ w²`` of any linear filter (given as a function), the
   factor by which it multiplies the variance of white noise.
+- :func:`calibrated_noise_sigma`: the noise of a view pair as the matcher measures it
+  (:func:`semlab.subset.icgn_refine`'s default, at given matches): Immerkær's estimate
+  lowered to what the matched subsets' residuals allow. The dense height maps use it, so a
+  run measures its noise one way.
 
 The noise of SEM images is signal-dependent (shot noise) and can be correlated along scan
 lines; :func:`image_noise_sigma` reports one white-noise level for the whole image, which
@@ -24,7 +28,7 @@ from scipy import ndimage
 
 from .errors import ImageError
 
-__all__ = ["image_noise_sigma", "filter_noise_gain"]
+__all__ = ["image_noise_sigma", "filter_noise_gain", "calibrated_noise_sigma"]
 
 # Immerkær's mask: L2 - 2 L1 of two Laplacians; a white noise of variance s² gives a
 # response of variance 36 s² (the sum of the squared weights).
@@ -91,3 +95,48 @@ def filter_noise_gain(apply, size=41):
     delta = np.zeros((size, size))
     delta[size // 2, size // 2] = 1.0
     return float(np.sum(np.asarray(apply(delta), float) ** 2))
+
+
+def calibrated_noise_sigma(ref_img, cur_img, pts_ref, pts_cur, half_window=10, max_points=2000,
+                           seed=0):
+    """White-noise σ of two views, calibrated on matched subsets as the matcher does.
+
+    Runs :func:`semlab.subset.icgn_refine` with its default noise measurement
+    (``noise_sigma=None``: each view's :func:`image_noise_sigma`, an upper bound where the
+    texture is sharp at the pixel scale, lowered to the median residual ratio of the
+    converged subsets, see ``semlab.subset._calibrate_noise``) at the given matches and
+    returns the noise it used. No estimator of its own.
+
+    Parameters
+    ----------
+    ref_img, cur_img : (H, W) arrays
+        The two views (grey units).
+    pts_ref, pts_cur : (N, 2) arrays
+        Matched positions ``(x, y)`` in pixels in each view (e.g. the stereo step's matches;
+        ``pts_cur`` is the IC-GN start). Rows with NaN are skipped.
+    half_window : int
+        Subset half size, pixels (default the automatic matcher's, 10).
+    max_points : int
+        At most this many matches are used (a seeded random choice), for speed.
+    seed : int
+
+    Returns
+    -------
+    (float, float)
+        Noise σ of ``ref_img`` and ``cur_img``, grey units. Immerkær's values when fewer
+        than 10 subsets converge (``icgn_refine`` then keeps them).
+    """
+    from .subset import icgn_refine
+
+    pr = np.asarray(pts_ref, float).reshape(-1, 2)
+    pc = np.asarray(pts_cur, float).reshape(-1, 2)
+    if len(pr) != len(pc):
+        raise ImageError(f"pts_ref and pts_cur must have one length, got {len(pr)} and {len(pc)}")
+    keep = np.flatnonzero(np.all(np.isfinite(pr), 1) & np.all(np.isfinite(pc), 1))
+    if len(keep) > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, int(max_points), replace=False))
+    if len(keep) == 0:
+        return (image_noise_sigma(ref_img), image_noise_sigma(cur_img))
+    r = icgn_refine(ref_img, cur_img, pr[keep], pc[keep], half_window=half_window,
+                    noise_sigma=None)
+    return (float(r.noise_sigma[0]), float(r.noise_sigma[1]))

@@ -509,8 +509,10 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     calibration=calibration)`` on crops reaching ``params.margin_px()`` + the IC-GN search
     pad + ``tiling.max_parallax_px`` beyond the tile; view 1's crop is shifted by the median
     parallax of the seeds in the tile (so the parallax a crop must hold is the *variation*
-    around it). The calibration is measured once (image noise and view 1's B-spline mean on
-    the whole views; σ factor and fusion τ by ``method`` on the central tile of ``roi``)
+    around it). The calibration is measured once (image noise as the matcher measures it,
+    :func:`semlab.noise.calibrated_noise_sigma` at the seeds; view 1's B-spline mean on the
+    whole view; σ factor, fusion τ, and the noise without seeds, by ``method`` on the
+    central tile of ``roi``)
     and given to every tile, so the map equals one untiled ``method(view0, view1, seeds,
     roi, params, calibration=...)`` call within the IC-GN tolerance (the tiles' initial
     guesses are their crops' flow: tested).
@@ -537,7 +539,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         Over ``roi``, with the shared ``calibration``.
     """
     from .heightmap import DenseParams, _as_view, _check_roi
-    from .noise import image_noise_sigma
+    from .noise import calibrated_noise_sigma
 
     fn = _dense_method(method)
     p = params or DenseParams()
@@ -549,8 +551,11 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         raise SemlabError(f"view0 and view1 must have one shape, got {v0.shape} and {v1.shape}")
     roi = _check_roi(roi, v0.shape)
     cal = dict(calibration or {})
-    if "noise_sigma" not in cal:
-        cal["noise_sigma"] = (image_noise_sigma(v0), image_noise_sigma(v1))
+    if "noise_sigma" not in cal and seeds is not None and len(seeds) >= 10:
+        # the matcher's calibrated noise at the seeds; without seeds the calibration tile
+        # measures it the same way on its dense subsets (icgn_refine's default)
+        sd = np.asarray(seeds, float)
+        cal["noise_sigma"] = calibrated_noise_sigma(v0, v1, sd[:, 0, :2], sd[:, 1, :2])
     if "coef_offset" not in cal:
         from scipy import ndimage
 
@@ -564,7 +569,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         if fin.any():
             default = np.median(seeds[fin, 1] - seeds[fin, 0], axis=0)
     offsets = _seed_offsets(seeds, default)
-    if not {"sigma_factor", "zncc_tau"} <= set(cal):
+    if not {"sigma_factor", "zncc_tau", "noise_sigma"} <= set(cal):
         # the σ factor and fusion τ of the central tile, shared by every tile
         c = int(t.dense_tile_px)
         cx, cy = (roi[0] + roi[2]) // 2, (roi[1] + roi[3]) // 2

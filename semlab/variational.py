@@ -10,7 +10,8 @@ parallax field ``d(x, y)`` on the view-0 grid, found as the minimum of
 - ``r_p`` is the difference of the **locally normalised** views (per-pixel mean and standard
   deviation over a Gaussian window, which removes the views' different gain and offset),
   view 1 sampled at the warped position; ``σ_p`` its noise, from the measured image noise
-  (:func:`semlab.noise.image_noise_sigma`) divided by the local standard deviations; ``k``
+  (the matcher's, :func:`semlab.noise.calibrated_noise_sigma`: Immerkær's estimate lowered
+  to the matched subsets' residuals) divided by the local standard deviations; ``k``
   (>= 1) rescales it to the residuals actually left (a robust standard deviation), which
   absorbs the model errors of interpolation and SEM contrast.
 - ``ρ_D`` and ``ρ_H`` are Huber functions: outlying residuals and steps of the parallax
@@ -410,7 +411,10 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         ``params.margin_px()``.
     params : VariationalParams, optional
     noise_sigma : (2,) floats, optional
-        White-noise σ of the two views (grey units); default measured on the whole images.
+        White-noise σ of the two views (grey units); default measured as the matcher does
+        (:func:`semlab.noise.calibrated_noise_sigma`: Immerkær's estimate lowered to the
+        residuals of 21×21 subsets matched on an 8 px grid of ``roi``, started at
+        ``parallax0``).
     return_info : bool
         Also return a dict of the measured quantities (prior scale, noise factor, ...).
 
@@ -438,7 +442,6 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         ``parallax0`` / ``valid0`` / ``roi`` of the wrong shape.
     """
     from .heightmap import _check_roi
-    from .noise import image_noise_sigma
 
     prm = params or VariationalParams()
     if prm.prior_order not in (1, 2):
@@ -467,7 +470,7 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
             epipolar = np.zeros(4)
     e = np.asarray(epipolar, float)
     if noise_sigma is None:
-        noise_sigma = (image_noise_sigma(v0), image_noise_sigma(v1))
+        noise_sigma = _grid_noise_sigma(v0, v1, p0, ok0, roi)
     # the solve window: roi + margin in view 0, view 1 cropped around its matches
     m = prm.margin_px()
     wx0, wy0 = max(0, roi[0] - m), max(0, roi[1] - m)
@@ -500,6 +503,20 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     if return_info:
         return par, sg, valid, info
     return par, sg, valid
+
+
+def _grid_noise_sigma(v0, v1, p0, ok0, roi, step=8):
+    """:func:`semlab.noise.calibrated_noise_sigma` on an ``step`` px grid of ``roi``, the
+    matches started at the initial parallax (its y part from the flow is not needed: IC-GN
+    finds it)."""
+    from .noise import calibrated_noise_sigma
+
+    yy, xx = np.mgrid[roi[1]:roi[3]:step, roi[0]:roi[2]:step]
+    yy, xx = yy.ravel(), xx.ravel()
+    keep = ok0[yy, xx]
+    pts = np.column_stack([xx[keep], yy[keep]]).astype(float)
+    cur = pts + np.column_stack([p0[yy[keep], xx[keep]], np.zeros(keep.sum())])
+    return calibrated_noise_sigma(v0, v1, pts, cur)
 
 
 def _window_scale(lv, d, e, window):
@@ -653,6 +670,12 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
         # the sparse matches fix the epipolar relation far better than the flow's y
         sd = np.asarray(seeds, float)
         cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0], sd[:, 1, 1])
+    if cal.get("noise_sigma") is None and seeds is not None and len(seeds) >= 10:
+        # the matcher's calibrated noise at the sparse matches
+        from .noise import calibrated_noise_sigma
+
+        sd = np.asarray(seeds, float)
+        cal["noise_sigma"] = calibrated_noise_sigma(view0, view1, sd[:, 0, :2], sd[:, 1, :2])
     if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
         prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))
     par, sig, valid, info = refine_parallax(view0, view1, p0, np.all(np.isfinite(p0), -1),

@@ -241,3 +241,65 @@ def test_heightmap_from_stereo_with_too_few_points_uses_the_tilts(scene_pair):
     res = hm.heightmap_from_stereo(exp, stereo)
     assert res.model.source == "tilts" and any("only 5 points" in n for n in res.notes)
     assert res.valid.mean() > 0.5
+
+
+def _fine_texture_pair(noise=0.05):
+    """Texture sharp at the pixel scale (Immerkær's noise estimate ~2x the true ``noise``),
+    a gentle parallax slope ``x1 - x0 = 0.4 + 0.002 x1``; returns views and the true x1."""
+    shape = (96, 128)
+    rng = np.random.default_rng(7)
+    t = _texture(shape, 1, 1.0)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    t1 = ndimage.map_coordinates(t, [yy, xx - (0.4 + 0.002 * xx)], order=3, mode="reflect")
+    x1 = (xx + 0.4) / (1 - 0.002)
+    return t + rng.normal(0, noise, shape), t1 + rng.normal(0, noise, shape), x1
+
+
+def test_sigma_is_honest_with_the_calibrated_noise():
+    """On a fine texture Immerkær's estimate is ~2x the true noise, and the subset map's σ
+    (σ factor clipped at >= 1) covered 88 % within 1σ; with the matcher's calibrated noise
+    (icgn_refine's default) the noise used is the truth and the 1σ covers 55-80 %."""
+    from semlab.noise import image_noise_sigma
+
+    a, b, x1 = _fine_texture_pair()
+    assert image_noise_sigma(a) > 1.6 * 0.05
+    p = hm.dense_parallax(a, b)
+    np.testing.assert_allclose(p.calibration["noise_sigma"], 0.05, rtol=0.15)
+    inner = (slice(12, -12), slice(12, -12))
+    v = p.valid[inner]
+    assert v.mean() > 0.95
+    e = (p.x1_px - x1)[inner][v]
+    cover = np.mean(np.abs(e) < p.sigma_px[inner][v])
+    assert 0.55 < cover < 0.8, cover
+
+
+def test_heightmap_from_stereo_uses_the_matchers_noise():
+    """One noise estimate per run: the map's noise is the one the stereo step recorded, else
+    the matcher's calibrated measurement at the stereo matches (not Immerkær's again)."""
+    from types import SimpleNamespace
+
+    from semlab.noise import calibrated_noise_sigma
+
+    a, b, x1 = _fine_texture_pair()
+    exp = SimpleNamespace(views=lambda: [a, b], pixel_size_um=0.03,
+                          stereo=SimpleNamespace(camera="affine"))
+    gy, gx = np.mgrid[16:80:8, 16:112:8]
+    p0 = np.column_stack([gx.ravel(), gy.ravel()]).astype(float)
+    p1 = np.column_stack([x1[gy, gx].ravel(), gy.ravel()])
+    pts = np.stack([p0, p1], 1)
+    stereo = SimpleNamespace(pts=pts, z_um=0.03 * (p1[:, 0] - p0[:, 0]),
+                             tilt_deg=np.array([-5.0, 5.0]))
+    roi = (20, 20, 76, 60)
+    res = hm.heightmap_from_stereo(exp, stereo, roi=roi)
+    want = calibrated_noise_sigma(a, b, p0, p1)
+    assert tuple(res.parallax.calibration["noise_sigma"]) == want
+    np.testing.assert_allclose(want, 0.05, rtol=0.15)
+    assert any("calibrated on the 96 stereo matches" in n for n in res.notes)
+    # recorded by the stereo step: taken as it is, by both dense methods
+    from semlab.variational import VariationalParams
+
+    stereo.calibration = {"noise_sigma": [0.07, 0.08, 0.09]}
+    for params in (None, VariationalParams()):
+        res = hm.heightmap_from_stereo(exp, stereo, roi=roi, params=params)
+        np.testing.assert_allclose(res.parallax.calibration["noise_sigma"], (0.07, 0.08))
+        assert any("recorded by the stereo step" in n for n in res.notes)

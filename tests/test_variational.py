@@ -175,3 +175,17 @@ def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair):
     d = np.abs(tp.x1_px - whole.x1_px)[tp.valid & whole.valid]
     # each tile starts from its own crop's flow: the same minimum almost everywhere
     assert np.median(d) < 0.02 and np.percentile(d, 95) < 0.1, np.percentile(d, [50, 95])
+
+
+def test_default_noise_is_the_matchers_calibrated_one():
+    """refine_parallax measures the noise as the matcher does (calibrated on matched subsets
+    at its initial parallax), not Immerkær's upper bound (~2x on a fine texture)."""
+    from semlab.noise import image_noise_sigma
+    from test_heightmap import _fine_texture_pair
+
+    a, b, x1 = _fine_texture_pair()
+    assert image_noise_sigma(a) > 1.6 * 0.05
+    x = np.arange(a.shape[1])[None, :] * np.ones((a.shape[0], 1))
+    roi = (16, 16, 80, 64)
+    *_, info = va.refine_parallax(a, b, x1 - x, roi=roi, return_info=True)
+    np.testing.assert_allclose(info["noise_sigma"], 0.05, rtol=0.15)
