@@ -81,7 +81,8 @@ class AnalysisConfig:
         displacement's curvature (``track_reverse(target_sigma_px=...)``, pixels; the
         tracking then also seeds a grid where the texture allows valid steps, see
         :func:`semlab.series.run_tracking`); None: fixed 21×21 subsets, corner seeds.
-        ``"auto"`` (default): 0.02 with subsets, None with LK.
+        ``"auto"`` (default): 0.02 with subsets, None with LK (``"none"``, e.g. from
+        ``--set track_target_sigma_px=none``, is None).
     gauge_length_px : float or None
         Gauge length of the sparse strain (None: from the track density).
     heightmap : bool
@@ -146,6 +147,8 @@ class AnalysisConfig:
         with LK)."""
         t = self.track_target_sigma_px
         if isinstance(t, str):
+            if t.lower() == "none":        # `--set track_target_sigma_px=none`: fixed subsets
+                return None
             if t != "auto":
                 raise SemlabError(f"track_target_sigma_px = {t!r}: give a target > 0 pixels, "
                                   "'auto' or None")

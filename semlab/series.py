@@ -3,9 +3,14 @@ displacements, strain, and their result files.
 
 Series::
 
-    frames ─► registration (stage drift) ─► seeds (Shi–Tomasi corners in the last frame, stereo
-        points registered into it) ─► tracking.track_reverse ─► displacements ─► strain
+    frames ─► registration (stage drift) ─► seeds (Shi–Tomasi corners in the last frame, a
+        grid where its texture allows valid steps (with sized subsets), stereo points
+        registered into it) ─► tracking.track_reverse ─► displacements ─► strain
         ─► tracks.csv, displacements.csv, drift.csv, strain.npz
+
+:class:`semlab.Analysis` (``semlab run``) tracks with subsets sized by their information by
+default (``AnalysisConfig.track_method="subset"``, target 0.02 px); :func:`run_tracking`'s
+own default stays pyramidal LK on the corners.
 
 Each step is a function of semlab's modules; this file only chains them and writes files.
 """

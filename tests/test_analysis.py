@@ -54,6 +54,9 @@ def test_tracking_with_subsets_sized_by_information(computed):
     assert an.config.track_target == 0.02 and an.config.track_target_sigma_px == "auto"
     assert tr.params["target_sigma_px"] == 0.02 and tr.method == "subset"
     assert semlab.AnalysisConfig(track_method="lk").track_target is None
+    assert semlab.AnalysisConfig(track_target_sigma_px="none").track_target is None
+    with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
+        semlab.AnalysisConfig(track_target_sigma_px="small")
     other = semlab.Analysis(exp, out, n_boot=0, track_method="lk", progress=False)
     assert other.tracking().tracks.method == "lk" and other.computed == ["tracking"]
     with pytest.raises(semlab.SemlabError, match="track_target_sigma_px"):
