@@ -1,9 +1,11 @@
 """Reference surface and tilt checks: a synthetic tall object, and the real pollen_pot1 series.
 
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
-                                            [--backward-sigma-p=P]
+                                            [--backward-sigma-p=P] [--total-error]
       (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure;
-      --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1)
+      --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1;
+      --total-error sizes its grid by the total error: ``target_sigma_px=0,
+      curvature_neighbours=1``)
 
 1. Synthetic: a textured bump 6 µm tall, ``6 (1 - r²/R²)²`` with R = 14 µm, off the
    centre of a flat substrate, seen at ±9° at 0.03 µm/px, 1024×768 px (the texture and
@@ -157,8 +159,10 @@ def pollen():
     ref_view = 0
     t = time.perf_counter()
     bsp = [float(a.split("=", 1)[1]) for a in sys.argv if a.startswith("--backward-sigma-p=")]
+    sized = dict(target_sigma_px=0.0, curvature_neighbours=1) if "--total-error" in sys.argv \
+        else {}
     m = auto_match(ims, ref_view=ref_view, progress=False,
-                   backward_sigma_p=bsp[0] if bsp else None)
+                   backward_sigma_p=bsp[0] if bsp else None, **sized)
     dt = time.perf_counter() - t
     r_all = _ellipse_r(m.pts[:, ref_view])
     on_grain, on_sub = r_all < 1.0, r_all > SUBSTRATE_R
@@ -169,7 +173,9 @@ def pollen():
     inside = np.all([(m.pts[:, ref_view, 0] + d[0] >= hw) & (m.pts[:, ref_view, 0] + d[0] < w - hw)
                      for d in shift], axis=0)
     print(f"\n### pollen_pot1 (real, 4 views, heights in pixels)\n\nsemlab.matching.auto_match "
-          f"(defaults, backward_sigma_p={m.params.backward_sigma_p}, reference view {ref_view}, "
+          f"(defaults, backward_sigma_p={m.params.backward_sigma_p}, target_sigma_px="
+          f"{m.params.target_sigma_px}, curvature_neighbours={m.params.curvature_neighbours}, "
+          f"reference view {ref_view}, "
           f"{dt:.0f} s): {m.valid.sum()} of {len(m.valid)} "
           f"grid points matched in all 4 views\n")
     print("| region | grid points | accepted | coverage | of those inside every view |")

@@ -289,8 +289,13 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         size, averaged over this many nearest grid points (1: each alone;
         :func:`semlab.adaptive.adaptive_icgn`); every size of the ladder is matched.
         ``target_sigma_px=0`` then takes each point's smallest predicted total error. The
-        chosen size's bias is the point's model error (instead of the neighbourhood's
-        non-affine parallax, stage 7b). None: sized by the noise alone.
+        point's model error is then the larger of the chosen size's bias and the
+        neighbourhood's non-affine parallax at ``half_window`` (stage 7b; at the grown size
+        that one counts the same curvature again). None: sized by the noise alone. Opt-in:
+        on seven 384×512 accuracy-matrix cells (``benchmarks/accuracy_matrix.py --sets
+        "auto total"``, 2026-12-02) it lowers the ratio to DeepFlow against fixed subsets on
+        every cell (1.38 → 1.15× on polished/low ±5°, 1.35 → 0.96× on FEI/realistic 0/+8°,
+        coverage 32 → 52 % there) but the FEI/realistic error bars miss 2σ (88 / 85 %).
     epipolar : bool
         Run the epipolar stage 6b (the forward–backward check of its points is along the
         epipolar direction too).
@@ -635,17 +640,15 @@ def _filter_roughness(st):
         # neighbourhood: test against local quadrics, which still reject steps
         _, rough = _parallax_gradients(grid[idx], pa[idx], return_residual=True,
                                        quadratic=curved)
-        # the non-affine part of the parallax around each point: its model error
-        model_x[idx, j] = parallax_model_error(grid[idx], pa[idx], sig_x[idx, j],
-                                               (side[idx] - 1) // 2, quadratic=curved,
-                                               spacing_px=p.spacing_px)
-        # with total-error sizing each point's own curvature bias, measured from how its
-        # match moves with the subset size, replaces the neighbourhood's estimate (scaled
-        # to a grown subset by the moments of a quadratic parallax it counts the same
-        # curvature again: polished/low ±5°, 87 % within 1σ, efficiency 2.3, instead of
-        # 62 % and 1.10 with the bias alone)
+        # the non-affine part of the parallax around each point: its model error; with
+        # total-error sizing (a measured bias b) at the smallest subset of the ladder, the
+        # growth beyond it is in b (the neighbourhood's estimate scaled to the grown
+        # subset by the moments of a quadratic parallax counts that curvature again)
         b = st.bias[idx, j]
-        model_x[idx, j] = np.where(np.isfinite(b), b, model_x[idx, j])
+        h_me = np.where(np.isfinite(b), p.half_window, (side[idx] - 1) // 2)
+        model_x[idx, j] = np.fmax(parallax_model_error(
+            grid[idx], pa[idx], sig_x[idx, j], h_me, quadratic=curved,
+            spacing_px=p.spacing_px), np.nan_to_num(b))
         if p.max_roughness_px is None:
             continue
         # a surface rough all over (a pollen grain's reticulum) is not a steep flank:
