@@ -243,8 +243,8 @@ def _gradient_holds(ra, rt):
     the target only with its bias: ``sqrt(σ_t² + bias²) <= target_sigma_px``.
     """
     d2 = np.sum((rt.pts - ra.pts) ** 2, axis=1)
-    with np.errstate(invalid="ignore"):       # both σ infinite (texture below the noise)
-        dv = np.sum(ra.sigma_px ** 2 - rt.sigma_px ** 2, axis=1)
+    dv = np.sum(ra.sigma_px ** 2 - rt.sigma_px ** 2, axis=1)
+    with np.errstate(invalid="ignore"):
         ok = d2 <= 2 * np.maximum(dv, 0)
         bias2 = np.where(np.isfinite(d2) & np.isfinite(dv), np.maximum(d2 - dv, 0), 0.0)
     return ~ra.converged | (~np.isfinite(dv) & np.isfinite(d2)) | ok, bias2

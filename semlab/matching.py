@@ -116,7 +116,7 @@ class AutoMatchParams:
     max_features: int = 5000
     backward_px: float = 0.1
     dense_prior_below: float = 0.5
-    target_sigma_px: float = 0.05
+    target_sigma_px: float = None
     max_half_window: int = 28
     epipolar: bool = True
     backward_sigma_p: float = None
@@ -282,13 +282,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     target_sigma_px, max_half_window : float or None, int
         Size each grid point's subset by its information, from ``half_window`` up to
         ``max_half_window`` (see :func:`refine_correspondences`); the forward–backward
-        check uses each point's own subset. None: one fixed ``half_window``. Default
-        0.05 px (issue #13's target): on seven 384×512 accuracy-matrix cells
-        (``benchmarks/accuracy_matrix.py``, ``auto`` vs ``auto adaptive``, 2026-12-02) the
-        sized grid has a lower RMSE ratio to DeepFlow at its points than fixed 21×21
-        subsets on every cell (polished realistic ±5° 1.20 → 1.02×, FEI realistic 0/+8°
-        1.35 → 0.90×, quartz low ±5° 1.16 → 1.02×), more coverage (FEI realistic 33 →
-        41 %) and ≥ 94 % within 2σ.
+        check uses each point's own subset. None: one fixed ``half_window``.
     curvature_neighbours : int or None
         With ``target_sigma_px``: size each grid point by its predicted total error, the
         noise σ and the curvature bias estimated from how its match moves with the subset

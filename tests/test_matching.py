@@ -406,9 +406,7 @@ def test_auto_match_tall_object_hundreds_of_px_parallax():
     assert np.ptp(par) > 200
     n_valid = {}
     for below in (0.0, 0.5):
-        # fixed 21×21 subsets: this test is about the prior; with the default sizing one of
-        # 7187 accepted matches grows to 41 px on the dome and is 0.42 px off (σ 0.10 px)
-        m = auto_match(ims, progress=False, dense_prior_below=below, target_sigma_px=None)
+        m = auto_match(ims, progress=False, dense_prior_below=below)
         v = m.only_valid()
         x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], tilts[0])
         err = np.hypot(*(v.pts[:, 1] - sc.project(x, y, tilts[1])).T)
@@ -492,29 +490,6 @@ def test_total_error_sizing_beats_fixed_subsets_on_a_poor_flat_texture():
             assert a.params.curvature_neighbours == 1
     assert rms["total"] < 0.75 * rms["fixed"], rms        # 4.8 against 7.9 nm
     assert 0.5 <= held["total"][0] <= 0.85 and held["total"][1] >= 0.9, held
-
-
-def test_default_grid_is_sized_by_the_noise_to_the_target():
-    """The default automatic grid sizes each subset by its information
-    (``target_sigma_px=0.05``, issue #13): on a flat, weakly textured surface under noise
-    where 21×21 subsets cannot reach the target, the subsets grow and the height error
-    falls against fixed 21×21 subsets, with error bars that still hold."""
-    sc = Scene(seed=5, shape=(150, 200))
-    sc.amps = np.zeros(3)
-    ims = [sc.render(TILTS[0], noise=0.6, seed=1), sc.render(TILTS[1], noise=0.6, seed=2)]
-    t0, t1 = np.deg2rad(TILTS)
-    rms = {}
-    for name, kw in (("fixed", dict(target_sigma_px=None)), ("default", {})):
-        v = auto_match(ims, spacing_px=8, progress=False, band_aware=False, **kw).only_valid()
-        z = heights_from(v.pts, sc.c[0])
-        rms[name] = np.sqrt(np.mean(z ** 2))
-        if name == "default":
-            assert v.params.target_sigma_px == 0.05
-            assert np.median(v.subset_px) > 21
-            z_sig = v.sigma_px * S_UM * np.cos(t0) / np.sin(t1 - t0)
-            assert 0.5 <= np.mean(np.abs(z) < z_sig) <= 0.85
-            assert np.mean(np.abs(z) < 2 * z_sig) >= 0.9
-    assert rms["default"] < 0.75 * rms["fixed"], rms      # 9.5 against 15.6 nm
 
 
 def test_roughness_stage_removes_steep_flank_matches():
