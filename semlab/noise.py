@@ -12,6 +12,8 @@
   (:func:`semlab.subset.icgn_refine`'s default, at given matches): Immerkær's estimate
   lowered to what the matched subsets' residuals allow. The dense height maps use it, so a
   run measures its noise one way.
+- :func:`with_seed_noise`: a dense map's calibration completed with that noise at its seeds
+  (the sparse matches), unless the calibration already holds one.
 
 The noise of SEM images is signal-dependent (shot noise) and can be correlated along scan
 lines; :func:`image_noise_sigma` reports one white-noise level for the whole image, which
@@ -28,7 +30,8 @@ from scipy import ndimage
 
 from .errors import ImageError
 
-__all__ = ["image_noise_sigma", "filter_noise_gain", "calibrated_noise_sigma"]
+__all__ = ["image_noise_sigma", "filter_noise_gain", "calibrated_noise_sigma",
+           "with_seed_noise"]
 
 # Immerkær's mask: L2 - 2 L1 of two Laplacians; a white noise of variance s² gives a
 # response of variance 36 s² (the sum of the squared weights).
@@ -140,3 +143,35 @@ def calibrated_noise_sigma(ref_img, cur_img, pts_ref, pts_cur, half_window=10, m
     r = icgn_refine(ref_img, cur_img, pr[keep], pc[keep], half_window=half_window,
                     noise_sigma=None)
     return (float(r.noise_sigma[0]), float(r.noise_sigma[1]))
+
+
+MIN_NOISE_SEEDS = 10     # fewer seeds: the dense method measures the noise on its own subsets
+
+
+def with_seed_noise(calibration, view0, view1, seeds):
+    """A dense map's calibration with the image noise measured at its seeds.
+
+    The calibration's own ``"noise_sigma"`` wins (e.g. recorded by the stereo step's
+    matcher); otherwise, with at least ``MIN_NOISE_SEEDS`` seeds, it is
+    :func:`calibrated_noise_sigma` at them; with fewer it stays unset (the dense method then
+    calibrates on its own subsets, ``icgn_refine``'s default).
+
+    Parameters
+    ----------
+    calibration : dict or None
+        Not modified.
+    view0, view1 : (H, W) arrays
+    seeds : (N, 2, 2) array or None
+        Sparse matches: ``seeds[:, v]`` the ``(x, y)`` pixel position in view ``v``.
+
+    Returns
+    -------
+    dict
+        A copy of ``calibration``, with ``"noise_sigma"`` (σ of view 0, σ of view 1, grey
+        units) where it could be measured.
+    """
+    cal = dict(calibration or {})
+    if cal.get("noise_sigma") is None and seeds is not None and len(seeds) >= MIN_NOISE_SEEDS:
+        sd = np.asarray(seeds, float)
+        cal["noise_sigma"] = calibrated_noise_sigma(view0, view1, sd[:, 0, :2], sd[:, 1, :2])
+    return cal

@@ -47,6 +47,7 @@ import numpy as np
 from scipy import ndimage
 
 from .errors import ImageError, SemlabError
+from .noise import with_seed_noise
 
 __all__ = ["VariationalParams", "normalise_local", "fit_epipolar", "refine_parallax",
            "variational_parallax"]
@@ -670,12 +671,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
         # the sparse matches fix the epipolar relation far better than the flow's y
         sd = np.asarray(seeds, float)
         cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0], sd[:, 1, 1])
-    if cal.get("noise_sigma") is None and seeds is not None and len(seeds) >= 10:
-        # the matcher's calibrated noise at the sparse matches
-        from .noise import calibrated_noise_sigma
-
-        sd = np.asarray(seeds, float)
-        cal["noise_sigma"] = calibrated_noise_sigma(view0, view1, sd[:, 0, :2], sd[:, 1, :2])
+    cal = with_seed_noise(cal, view0, view1, seeds)   # the matcher's noise at the seeds
     if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
         prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))
     par, sig, valid, info = refine_parallax(view0, view1, p0, np.all(np.isfinite(p0), -1),
