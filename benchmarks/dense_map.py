@@ -114,7 +114,7 @@ def _compare(z, sigma, valid, zd, truth, interior):
     return out
 
 
-def run_scene(name, kw, tmp, params=None, subset=True):
+def run_scene(name, kw, tmp, params=None, subset=True, vparams=None):
     folder = Path(tmp) / name.split()[0] / str(abs(hash(name)))
     make(folder, kw)
     exp = experiment.load(folder)
@@ -128,7 +128,7 @@ def run_scene(name, kw, tmp, params=None, subset=True):
     interior[BORDER:-BORDER, BORDER:-BORDER] = True
     out = dict(scene=name, n_sparse=len(st.pts), t_sparse=t_sparse)
     t0 = time.perf_counter()
-    hv = heightmap.heightmap_from_stereo(exp, st, params=variational.VariationalParams())
+    hv = heightmap.heightmap_from_stereo(exp, st, params=vparams or variational.VariationalParams())
     out["t_var"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     zd = deepflow_heights(exp.views(), hv.model)
@@ -163,7 +163,12 @@ def main(argv=None):
     ap.add_argument("--no-subset", action="store_true",
                     help="skip the subset map (variational and DeepFlow only)")
     ap.add_argument("--scenes", type=int, nargs="+", help="indices of the scenes to run")
+    ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
+                    help="a VariationalParams field of the variational map, e.g. "
+                         "--var prior_order=2 --var solver=direct (repeatable)")
     args = ap.parse_args(argv)
+    vparams = _vparams(args.var)
+    print(f"variational params: {vparams}")
     rows = []
     sc = scenes(args.quick)
     if args.scenes:
@@ -176,7 +181,7 @@ def main(argv=None):
     subset = not args.no_subset
     with tempfile.TemporaryDirectory() as tmp:
         for name, kw in sc:
-            r = run_scene(name, kw, tmp, params, subset)
+            r = run_scene(name, kw, tmp, params, subset, vparams)
             rows.append(r)
             v = r["var"]
             msg = (f"{name}: variational {v['ours_nm']:.1f} nm vs DeepFlow {v['deep_nm']:.1f} nm "
@@ -206,6 +211,30 @@ def main(argv=None):
     if subset:
         _split_table(rows, "semlab", lambda r: r)
     return rows
+
+
+def _vparams(items):
+    """``VariationalParams`` from ``KEY=VALUE`` strings (values typed like the defaults)."""
+    import dataclasses
+
+    fields = {f.name: f for f in dataclasses.fields(variational.VariationalParams)}
+    kw = {}
+    for it in items:
+        key, _, val = it.partition("=")
+        if key not in fields:
+            raise SystemExit(f"--var {it}: unknown VariationalParams field {key!r}")
+        default = fields[key].default
+        if val.lower() == "none":
+            kw[key] = None
+        elif isinstance(default, bool):
+            kw[key] = val.lower() in ("1", "true", "yes")
+        elif isinstance(default, int):
+            kw[key] = int(val)
+        elif isinstance(default, float) or default is None:
+            kw[key] = float(val)
+        else:
+            kw[key] = val
+    return variational.VariationalParams(**kw)
 
 
 def _split_table(rows, label, metrics):
