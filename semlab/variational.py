@@ -101,6 +101,11 @@ class VariationalParams:
     prior_order : {1, 2}
         Huber prior on first (default) or second differences (scale = rule / window;
         experimental: its conjugate gradients converge slowly, so use ``solver="direct"``).
+    prior : {"tv", "tgv"}
+        ``"tv"``: the Huber prior of ``prior_order`` differences; ``"tgv"``: the
+        first+second-order prior of :mod:`semlab.variational_tgv` (the parallax against a
+        slope field, so a ramp costs nothing; scales ``s`` and ``s / prior_window_px``;
+        always solved exactly, ``solver`` ignored).
     solver : {"cg", "direct"}
         Each IRLS system and the posterior samples solved by Jacobi-preconditioned conjugate
         gradients (``cg_iter``, ``cg_tol``) or exactly by a sparse LU factor
@@ -126,6 +131,8 @@ class VariationalParams:
     prior_order: int = 1
     sigma_mode: str = "posterior+bias"
     solver: str = "cg"
+    prior: str = "tv"
+    slope_scale_px: float | None = None
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
@@ -447,6 +454,8 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     prm = params or VariationalParams()
     if prm.prior_order not in (1, 2):
         raise SemlabError(f"VariationalParams.prior_order must be 1 or 2, got {prm.prior_order!r}")
+    if prm.prior not in ("tv", "tgv"):
+        raise SemlabError(f"VariationalParams.prior must be 'tv' or 'tgv', got {prm.prior!r}")
     if prm.solver not in ("cg", "direct"):
         raise SemlabError(f"VariationalParams.solver must be 'cg' or 'direct', got "
                           f"{prm.solver!r}")
@@ -565,9 +574,18 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     rng = np.random.default_rng(prm.seed)
     if s is None:
         s = _window_scale(lv, dl, e, prm.prior_window_px)
-        if prm.prior_order == 2:
+        if prm.prior_order == 2 and prm.prior == "tv":
             s = s / prm.prior_window_px
         info["prior_rule"] = f"data-only 1σ of a {prm.prior_window_px}-px window"
+    tgv = None
+    if prm.prior == "tgv":
+        from . import variational_tgv as tg
+
+        s2 = (prm.slope_scale_px if prm.slope_scale_px is not None
+              else s * np.sqrt(12.0) / prm.prior_window_px)
+        tgv = dict(ops=tg.tgv_operators(dl.shape), s2=s2)
+        info["slope_scale_px"] = float(s2)
+        wsl = tg.initial_slopes(dl)
     k = 1.0
     for _ in range(prm.warps):
         w1, J, sig, inside = lv.warp(dl, e)
@@ -581,6 +599,10 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
             wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
                           / (k * sig) ** 2, 0.0)
             D = wd * J * J
+            if tgv is not None:
+                dl, wsl = tg.tgv_step(D, D * dw - wd * J * r0, dl, wsl, s, tgv["s2"],
+                                      prm.smooth_huber, tgv["ops"])
+                continue
             wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
             dl = _linear_solver(D, wh, wv, prm)(D * dw - wd * J * r0, dl)
     # posterior variance at the last linearisation
@@ -588,13 +610,18 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     r0 = w1 - lv.n0
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
-    wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
-    xs, solve = _samples(D, wh, wv, prm, rng, prm.n_samples,
-                         prm.sigma_mode.startswith("posterior"))
+    post = prm.sigma_mode.startswith("posterior")
+    if tgv is not None:
+        xs, bias = tg.tgv_samples(D, dl, wsl, s, tgv["s2"], prm.smooth_huber, rng,
+                                  prm.n_samples, post, tgv["ops"])
+    else:
+        wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
+        xs, solve = _samples(D, wh, wv, prm, rng, prm.n_samples, post)
     var = np.mean([x * x for x in xs], 0)
     if prm.sigma_mode in ("noise+bias", "posterior+bias"):
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂)
-        bias = solve(_laplace_apply(dl, wh, wv))
+        if tgv is None:
+            bias = solve(_laplace_apply(dl, wh, wv))
         var = var + bias ** 2
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
