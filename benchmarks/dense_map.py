@@ -109,6 +109,7 @@ def _compare(z, sigma, valid, zd, truth, interior):
     for part, sel in (("wall", w), ("flat", ~w)):
         out[part] = dict(share=float(sel.mean()), ours_nm=1e3 * rms(e[sel]),
                          deep_nm=1e3 * rms(e_deep[sel]),
+                         median_sigma_nm=1e3 * float(np.median(sig[sel])),
                          in1=float(np.mean(np.abs(e[sel]) < sig[sel])),
                          in2=float(np.mean(np.abs(e[sel]) < 2 * sig[sel])))
     return out
@@ -141,6 +142,13 @@ def run_scene(name, kw, tmp, params=None, subset=True, vparams=None):
     out["noise"] = [float(v) for v in hv.parallax.calibration.get("noise_sigma", (np.nan,) * 2)]
     out["noise_immerkaer"] = [image_noise_sigma(v) for v in exp.views()[:2]]
     out["prior_scale_px"] = float(hv.parallax.calibration.get("prior_scale_px", np.nan))
+    # the flat parts' information limit: the prior scale is the median data-only 1σ of the
+    # parallax of a prior_window_px² window; a w² window's is (window / w) times it
+    cy, cx = (n // 2 for n in truth.shape)
+    nm_per_px = 1e3 * abs(float(hv.model.height(cx + 1.0, cy, cx, cy)
+                                - hv.model.height(cx + 0.0, cy, cx, cy)))
+    win = (vparams or variational.VariationalParams()).prior_window_px
+    out["crb_nm"] = {w: nm_per_px * out["prior_scale_px"] * win / w for w in (win, 25, 41)}
     if subset:
         t0 = time.perf_counter()
         hm = heightmap.heightmap_from_stereo(exp, st, params=params)
@@ -208,6 +216,12 @@ def main(argv=None):
                lambda r, m: f"{100 * m['from_var']:.0f} %")
     _table(rows, "variational", lambda r: r["var"], "time", lambda r, m: f"{r['t_var']:.0f} s")
     _split_table(rows, "variational", lambda r: r["var"])
+    print("\n| scene | flat RMSE | flat median 1σ | data-only 1σ of a 15² / 25² / 41² window |")
+    print("|---|---|---|---|")
+    for r in rows:
+        f, c = r["var"]["flat"], list(r["crb_nm"].values())
+        print(f"| {r['scene']} | {f['ours_nm']:.1f} nm | {f['median_sigma_nm']:.1f} nm | "
+              f"{c[0]:.1f} / {c[1]:.1f} / {c[2]:.1f} nm |")
     if subset:
         _split_table(rows, "semlab", lambda r: r)
     return rows
