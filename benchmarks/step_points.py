@@ -122,13 +122,15 @@ def run_cell(tmp, cell):
         rule_rr[0] = np.where(rr[0] > 1.5, 0.7 * rr[0], -np.inf)
         rule = np.argmin(rule_rr, 0)
         tag = f"_{frac:g}"
+        best = np.min(np.where(np.isfinite(e), np.abs(e), np.inf), 0)  # the truth's choice
+        best[~np.isfinite(best)] = np.nan
         row.update({
             "rr_w": float(np.nanmedian(rr[0][worst])), "rr_w15": float(np.mean(rr[0][worst] > 1.5)),
             "rr_rest": float(np.nanmedian(rr[0][~worst])),
             "rr_rest15": float(np.mean(rr[0][~worst] > 1.5)),
             "c_w": _rms(e[0][worst]), "c_all": _rms(e[0]),
-            "or_w" + tag: _rms(np.nanmin(np.abs(e), 0)[worst]),
-            "or_all" + tag: _rms(np.nanmin(np.abs(e), 0)),
+            "or_w" + tag: _rms(best[worst]),
+            "or_all" + tag: _rms(best),
             "mr_w" + tag: _rms(e[best_rr, k][worst]), "mr_all" + tag: _rms(e[best_rr, k]),
             "ru_w" + tag: _rms(e[rule, k][worst]), "ru_all" + tag: _rms(e[rule, k]),
             "ru_n" + tag: float(np.mean(rule > 0)),
