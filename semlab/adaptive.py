@@ -30,8 +30,11 @@ smallest total error (``target_sigma_px=0``: always the smallest total error).
 
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
-counts as reaching the target. Points that do not reach the target with the largest
-subset keep their best match (the smallest predicted error among the fitting ones, else
+counts as reaching the target, and the point stops growing there (the misfit grows with
+the subset), as does one whose IC-GN diverged or left the image; only a fitting match
+above the target, or a subset too poor in texture to converge (singular Hessian, or
+``max_iter`` reached, at most at two sizes in a row), is tried at the next size.
+Points that do not reach the target keep their best match (the smallest predicted error among the fitting ones, else
 the smallest subset that converged: misfit grows with the subset),
 ``target_met = False`` and a reason; they are never dropped silently. Each point reports its subset half size, so the caller can give its spatial
 resolution ``(2 h + 1) × pixel_size_um``.
@@ -44,11 +47,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .errors import SemlabError
-from .subset import SubsetResult, _as_image, icgn_refine, prefilter_image
+from .subset import (MAX_ITER, NO_TEXTURE, NO_TEXTURE_CUR, SubsetResult, _as_image,
+                     icgn_refine, prefilter_image)
 
 __all__ = ["AdaptiveResult", "adaptive_icgn", "TARGET_MISSED"]
 
 TARGET_MISSED = "target_sigma_px not reached with the largest subset"
+_POOR = (NO_TEXTURE, NO_TEXTURE_CUR)   # IC-GN failures a larger subset can cure
 
 
 @dataclass(frozen=True)
@@ -171,9 +176,11 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     best_fits = np.zeros(n, bool)
     todo = np.arange(n)
     guess = pg.copy()
+    slow = np.zeros(n, int)           # successive sizes whose first fit hit max_iter
     for h in hs:
         if len(todo) == 0:
             break
+        grow = np.zeros(len(todo), bool)    # where a larger subset can still help
         cand = []
         if warp in ("auto", "affine"):
             cand.append(("affine", icgn_refine(ref, cur, pr[todo], guess[todo], half_window=h,
@@ -213,7 +220,18 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             # a converged match is the next size's starting point
             good = np.isfinite(r.pts[:, 0])
             guess[todo[good]] = r.pts[good]
-        todo = todo[~met[todo]]
+            grow |= fits & ~ok_now
+        # grow only where more pixels can help: a fitting match above the target, or a
+        # most general fit (the first candidate) that failed for lack of information
+        # (singular Hessian; max_iter, at most twice in a row); a subset that does not
+        # fit its shape function (the misfit grows with the subset) or that diverged /
+        # left the image stops here (on the 1200² quartz views, where most subsets'
+        # residual exceeds the noise, the whole ladder for every point cost 9× the fixed
+        # subsets' IC-GN)
+        why = np.asarray(cand[0][1].reason)
+        slow[todo] = np.where(why == MAX_ITER, slow[todo] + 1, 0)
+        poor = np.isin(why, _POOR) | ((why == MAX_ITER) & (slow[todo] < 2))
+        todo = todo[~met[todo] & (grow | poor)]
     # never converged: keep IC-GN's reason; converged but above the target: say so
     conv = best.converged
     reason = np.array(best.reason, dtype=object)
@@ -243,8 +261,8 @@ def _gradient_holds(ra, rt):
     the target only with its bias: ``sqrt(σ_t² + bias²) <= target_sigma_px``.
     """
     d2 = np.sum((rt.pts - ra.pts) ** 2, axis=1)
-    dv = np.sum(ra.sigma_px ** 2 - rt.sigma_px ** 2, axis=1)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):       # both σ infinite (texture below the noise)
+        dv = np.sum(ra.sigma_px ** 2 - rt.sigma_px ** 2, axis=1)
         ok = d2 <= 2 * np.maximum(dv, 0)
         bias2 = np.where(np.isfinite(d2) & np.isfinite(dv), np.maximum(d2 - dv, 0), 0.0)
     return ~ra.converged | (~np.isfinite(dv) & np.isfinite(d2)) | ok, bias2

@@ -98,12 +98,13 @@ def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic
     out = np.zeros(n)
     for kk in np.unique(ks):
         _, rough = _parallax_gradients(xy, par, k=kk, return_residual=True, quadratic=quadratic)
-        m = ks == kk
-        out[m] = model_error_from_fit(xy, rough, sigma_px, h, kk, 6 if quadratic else 3)[m]
+        m = np.flatnonzero(ks == kk)       # only these points' fits (O(m k²) each)
+        out[m] = model_error_from_fit(xy, rough, sigma_px, h, kk, 6 if quadratic else 3,
+                                      rows=m)
     return out
 
 
-def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
+def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3, rows=None):
     """Centre bias of affine subsets from the RMS residual of local parallax fits, pixels.
 
     ``rms_px`` is the RMS residual of a local plane (``n_par = 3``) through the parallax of
@@ -118,6 +119,9 @@ def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
     spread wider than the subset (sparse matches) are scaled down, subsets larger than the
     neighbourhood (information-sized ones) up.
 
+    ``rows`` (index array, optional): compute only these points' values (their
+    neighbours still from all points); the result then has ``len(rows)`` values.
+
     Returns
     -------
     (N,) array of pixels (0 where the field is as planar as the noise allows).
@@ -125,18 +129,21 @@ def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3):
     from scipy.spatial import cKDTree
 
     xy = np.asarray(xy, float)
+    n = len(xy)
+    sel = np.arange(n) if rows is None else np.asarray(rows, int)
     s = np.asarray(sigma_px, float)
     s2 = np.where(np.isfinite(s), s, 0.0) ** 2        # NaN / inf σ: no noise estimate
-    kk = min(k, len(xy))
-    _, nb = cKDTree(xy).query(xy, k=kk)
-    nb = np.asarray(nb).reshape(len(xy), kk)
-    d = xy[nb] - xy[:, None, :]
-    h = np.broadcast_to(np.asarray(half_window, float), (len(xy),))
+    kk = min(k, n)
+    _, nb = cKDTree(xy).query(xy[sel], k=kk)
+    nb = np.asarray(nb).reshape(len(sel), kk)
+    d = xy[nb] - xy[sel, None, :]
+    h = np.broadcast_to(np.asarray(half_window, float), (n,))[sel]
     noise = _fit_noise_rms(d, np.sqrt(s2)[nb], h, n_par)
     d2 = np.sum(d ** 2, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         geom = np.where(np.std(d2, axis=1) > 0, 2 * h * (h + 1) / 3 / np.std(d2, axis=1), 0.0)
-    return excess_over_noise(rms_px, noise) * geom
+    rms = np.broadcast_to(np.asarray(rms_px, float), (n,))[sel]
+    return excess_over_noise(rms, noise) * geom
 
 
 def model_error_at(query_xy, xy, parallax_px, sigma_px, half_window, grid_half_window, k=12):
