@@ -30,10 +30,11 @@ smallest total error (``target_sigma_px=0``: always the smallest total error).
 
 A subset whose residual exceeds what the measured noise explains (by more than the same
 chi-square scatter) does not fit its shape function (curved parallax, a step): it never
-counts as reaching the target, and the point stops growing there (the misfit grows with
-the subset), as does one whose IC-GN diverged or left the image; only a fitting match
-above the target, or a subset too poor in texture to converge (singular Hessian, or
-``max_iter`` reached, at most at two sizes in a row), is tried at the next size.
+counts as reaching the target. A point grows only where more pixels can help: a match
+above the target that fits, or whose excess residual the largest subset could dilute
+below its scatter (a local misfit falls at best as the area grows; a curvature misfit
+grows), or a subset too poor in texture to converge (singular Hessian; ``max_iter`` or
+divergence at most at two sizes in a row). Others stop at their size.
 Points that do not reach the target keep their best match (the smallest predicted error among the fitting ones, else
 the smallest subset that converged: misfit grows with the subset),
 ``target_met = False`` and a reason; they are never dropped silently. Each point reports its subset half size, so the caller can give its spatial
@@ -47,13 +48,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .errors import SemlabError
-from .subset import (MAX_ITER, NO_TEXTURE, NO_TEXTURE_CUR, SubsetResult, _as_image,
+from .subset import (DIVERGED, MAX_ITER, NO_TEXTURE, NO_TEXTURE_CUR, SubsetResult, _as_image,
                      icgn_refine, prefilter_image)
 
 __all__ = ["AdaptiveResult", "adaptive_icgn", "TARGET_MISSED"]
 
 TARGET_MISSED = "target_sigma_px not reached with the largest subset"
 _POOR = (NO_TEXTURE, NO_TEXTURE_CUR)   # IC-GN failures a larger subset can cure
+_RETRY = (MAX_ITER, DIVERGED)           # ... or may: tried at one more size
 
 
 @dataclass(frozen=True)
@@ -176,7 +178,7 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
     best_fits = np.zeros(n, bool)
     todo = np.arange(n)
     guess = pg.copy()
-    slow = np.zeros(n, int)           # successive sizes whose first fit hit max_iter
+    slow = np.zeros(n, int)           # successive sizes whose first fit failed (_RETRY)
     for h in hs:
         if len(todo) == 0:
             break
@@ -191,6 +193,11 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
                 init_warp=iw[todo], **kw)))
         dof = (2 * h + 1) ** 2 - 6
         scatter = 3 * np.sqrt(2.0 / dof)     # chi-square scatter of a residual variance
+        # a local misfit (a particle, an edge) is at best diluted by the area of a larger
+        # subset: the excess residual ratio falls as (2h+1)² / (2H+1)²; a subset that
+        # could not fit even so at the largest size H stops (a curvature misfit grows)
+        dilute = ((2 * h + 1) / (2 * hs[-1] + 1)) ** 2
+        scatter_max = 3 * np.sqrt(2.0 / ((2 * hs[-1] + 1) ** 2 - 6))
         for name, r in cand:
             # a subset whose residual exceeds the noise by more than the scatter does not
             # fit its shape function (curved parallax, a step); a translation must fit as
@@ -220,17 +227,19 @@ def adaptive_icgn(ref_img, cur_img, pts_ref, pts_guess, target_sigma_px=0.05,
             # a converged match is the next size's starting point
             good = np.isfinite(r.pts[:, 0])
             guess[todo[good]] = r.pts[good]
-            grow |= fits & ~ok_now
-        # grow only where more pixels can help: a fitting match above the target, or a
-        # most general fit (the first candidate) that failed for lack of information
-        # (singular Hessian; max_iter, at most twice in a row); a subset that does not
-        # fit its shape function (the misfit grows with the subset) or that diverged /
-        # left the image stops here (on the 1200² quartz views, where most subsets'
-        # residual exceeds the noise, the whole ladder for every point cost 9× the fixed
-        # subsets' IC-GN)
+            grow |= ~ok_now & (fits | (r.converged
+                                       & ((r.residual_ratio - 1) * dilute <= scatter_max)))
+        # grow only where more pixels can help: a match above the target that fits, or
+        # whose misfit a larger subset could dilute, or a most general fit (the first
+        # candidate) that failed for lack of information (singular Hessian; max_iter or
+        # divergence, at most at two sizes in a row); a subset whose misfit no size can
+        # dilute, or that left the image, stops here (on the 1200² quartz views, where
+        # most subsets' residual exceeds the noise, the whole ladder for every point cost
+        # 9× the fixed subsets' IC-GN)
         why = np.asarray(cand[0][1].reason)
-        slow[todo] = np.where(why == MAX_ITER, slow[todo] + 1, 0)
-        poor = np.isin(why, _POOR) | ((why == MAX_ITER) & (slow[todo] < 2))
+        retry = np.isin(why, _RETRY)
+        slow[todo] = np.where(retry, slow[todo] + 1, 0)
+        poor = np.isin(why, _POOR) | (retry & (slow[todo] < 2))
         todo = todo[~met[todo] & (grow | poor)]
     # never converged: keep IC-GN's reason; converged but above the target: say so
     conv = best.converged
