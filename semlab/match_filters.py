@@ -20,7 +20,8 @@ def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
 
     Returns (n, 2) gradients, and with ``return_residual`` also the RMS residual (n,) of
     each local plane. ``quadratic``: fit local quadrics instead (curved parallax fields of
-    tall objects), residuals of those."""
+    tall objects), residuals of those; the first output is then (n, 5): the gradient and
+    the coefficients ``(a, b, c)`` of ``a dx² + b dx dy + c dy²`` (per pixel²)."""
     n = len(xy)
     kk = min(k, n)
     _, nb = cKDTree(xy).query(xy, k=kk)
@@ -36,10 +37,13 @@ def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
     XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(X.shape[2])
     Xty = np.einsum("nki,nk->ni", X, y)
     sol = np.linalg.solve(XtX, Xty[..., None])[..., 0]
+    coef = sol[:, 1:].copy()
+    if quadratic:
+        coef[:, 2:] /= sc ** 2                                     # per pixel²
     if return_residual:
         res = y - np.einsum("nki,ni->nk", X, sol)
-        return sol[:, 1:], np.sqrt(np.mean(res ** 2, axis=1))
-    return sol[:, 1:]
+        return coef, np.sqrt(np.mean(res ** 2, axis=1))
+    return coef
 
 
 def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):

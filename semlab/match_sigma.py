@@ -33,6 +33,7 @@ import numpy as np
 from .match_filters import _parallax_gradients
 
 __all__ = ["aposteriori_sigma", "parallax_model_error", "model_error_from_fit",
+           "curvature_bias",
            "model_error_at", "excess_over_noise", "match_sigma"]
 
 
@@ -102,6 +103,42 @@ def parallax_model_error(xy, parallax_px, sigma_px, half_window, k=12, quadratic
         out[m] = model_error_from_fit(xy, rough, sigma_px, h, kk, 6 if quadratic else 3,
                                       rows=m)
     return out
+
+
+def curvature_bias(xy, parallax_px, half_window, k=12):
+    """Centre bias of affine subsets on a curved parallax field, pixels.
+
+    An affine shape function cannot follow the quadratic part of the parallax, so the
+    subset's estimate is the parallax averaged over the subset rather than at its centre
+    (the "undermatched shape function" error: H. W. Schreier and M. A. Sutton 2002,
+    "Systematic errors in digital image correlation due to undermatched subset shape
+    functions", Experimental Mechanics 42(3), 303-310). For ``d = … + a x² + b x y + c y²``
+    over a ``(2h+1)²`` square with evenly spread information the bias is
+    ``(a + c) h (h + 1) / 3``. The curvature comes from local quadrics through the matched
+    parallax of each point's ``k`` nearest neighbours (the matched field is biased by a
+    smooth amount, which leaves its curvature nearly unchanged).
+
+    Parameters
+    ----------
+    xy : (N, 2) array of (x, y) pixels
+        Reference-view positions of the matched points (N >= 6).
+    parallax_px : (N,) array
+        Their parallax along the epipolar direction, pixels.
+    half_window : int or (N,) array
+        Half size ``h`` of each point's square subset.
+    k : int
+        Neighbours of each local quadric (the point included).
+
+    Returns
+    -------
+    (N,) array
+        The bias (estimate minus the parallax at the centre), pixels: subtract it.
+    """
+    xy = np.asarray(xy, float)
+    par = np.asarray(parallax_px, float)
+    h = np.broadcast_to(np.asarray(half_window, float), (len(xy),))
+    coef = _parallax_gradients(xy, par, k=k, quadratic=True)
+    return (coef[:, 2] + coef[:, 4]) * h * (h + 1) / 3.0
 
 
 def model_error_from_fit(xy, rms_px, sigma_px, half_window, k=12, n_par=3, rows=None):

@@ -44,7 +44,7 @@ from .adaptive import _grid_icgn
 from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
 from .match_step import shiftable_refine
-from .match_sigma import aposteriori_sigma, parallax_model_error
+from .match_sigma import aposteriori_sigma, curvature_bias, parallax_model_error
 from .match_band import _band_orientation, _combine, _oriented_refine
 from .match_epipolar import epipolar_refine
 from .match_filters import (_backward_distance, _local_outliers, _multiview_residual,
@@ -178,6 +178,10 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        affine model of a tilt series (see ``multiview_px``).
     8. Forward–backward test (``backward_px``): the accepted points matched back from each
        view must return to their reference position.
+    8b. Curvature correction of views matched with the dense prior (a tall, curved
+       object): each point's affine subset averages the quadratic part of the parallax
+       over the subset; that centre bias (:func:`semlab.match_sigma.curvature_bias`, from
+       local quadrics through the accepted parallax) is subtracted.
 
     Parameters
     ----------
@@ -338,6 +342,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     _filter_consistency(st)
     _filter_roughness(st)
     _filter_backward(st)
+    _stage_curvature(st)
     _filter_multiview(st)
     return _stage_result(st, progress)
 
@@ -370,6 +375,7 @@ class _AutoState:
     work: np.ndarray = None     # indices of the textured grid points
     gw: np.ndarray = None       # their positions
     resid: dict = field(default_factory=dict)      # view -> (parallax, cross-parallax)
+    e_dir: dict = field(default_factory=dict)      # view -> unit parallax direction
     curved: set = field(default_factory=set)       # views matched with the dense prior
     ref_cache: dict = field(default_factory=dict)
     fwd_state: dict = field(default_factory=dict)  # view -> state of the backward check
@@ -613,6 +619,7 @@ def _stage_record(st, view):
     st.valid[work[~view.ok_j]] = False
     rr = st.out[:, j] - _apply_affine(view.M, st.grid)
     st.resid[j] = (rr @ view.e, rr @ view.eperp)
+    st.e_dir[j] = view.e
     if p.backward_px is not None:
         warp_full = np.full((st.n, 6), np.nan)
         warp_full[work] = np.where(np.isfinite(r.warp), r.warp, view.init_w)
@@ -721,6 +728,21 @@ def _filter_backward(st):
         valid[idx[bad]] = False
         wide = ~bad & (fb_d > p.backward_px)
         st.sig_ap[idx[wide], j] = np.hypot(st.sig_ap[idx[wide], j], fb_d[wide] / 2)
+
+
+def _stage_curvature(st):
+    """Stage 8b: views matched with the dense prior (a tall, curved object) lose the centre
+    bias of their affine subsets on the curved parallax
+    (:func:`semlab.match_sigma.curvature_bias`, each point's own subset size), measured
+    from the accepted points' parallax; the forward–backward test above judged the
+    matches as they were."""
+    idx = np.flatnonzero(st.valid)
+    if len(idx) < 12:
+        return
+    h = np.maximum((st.side[idx] - 1) // 2, 1)
+    for j in sorted(st.curved):
+        b = curvature_bias(st.grid[idx], st.resid[j][0][idx], h)
+        st.out[idx, j] -= b[:, None] * st.e_dir[j]
 
 
 def _filter_multiview(st):
