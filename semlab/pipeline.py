@@ -122,11 +122,7 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
 
     Returns
     -------
-    pts (M, V, 2), kind (M,) str, sigma_px (M,), index into clicks (M,) int (-1 for auto),
-    noise_sigma (V,) float or None
-        The last: each view's image noise σ (grey units) that the automatic matcher
-        calibrated and used (:attr:`semlab.MatchResult.noise_sigma`); None without
-        automatic matching.
+    pts (M, V, 2), kind (M,) str, sigma_px (M,), index into clicks (M,) int (-1 for auto)
 
     Examples
     --------
@@ -138,13 +134,12 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     >>> a = ndimage.gaussian_filter(rng.normal(size=(160, 160)), 2.0)
     >>> b = ndimage.shift(a, (0.0, 0.3), order=3, mode="nearest")
     >>> clicks = np.array([[[60.0, 60.0], [60.0, 60.0]], [[100.0, 90.0], [100.0, 90.0]]])
-    >>> pts, kind, sigma_px, idx, noise = semlab.match_views([a, b], clicks, method="refined",
-    ...                                                     progress=False)
+    >>> pts, kind, sigma_px, idx = semlab.match_views([a, b], clicks, method="refined",
+    ...                                              progress=False)
     Traceback (most recent call last):
     ...
     semlab.errors.GeometryError: only 2 matched points: heights need at least 4; add clicks or use automatic matching
-    >>> pts, kind, sigma_px, idx, noise = semlab.match_views([a, b], method="auto",
-    ...                                                     progress=False)
+    >>> pts, kind, sigma_px, idx = semlab.match_views([a, b], method="auto", progress=False)
     >>> bool(abs(np.median(pts[:, 1, 0] - pts[:, 0, 0]) - 0.3) < 0.01), len(pts) > 50
     (True, True)
     """
@@ -156,9 +151,8 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
                           "has none (add [stereo] correspondences, or use method='auto')")
     if method == "raw":
         n = len(clicks)
-        return clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n), None
+        return clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n)
     parts = []
-    noise = None
     if method in ("refined", "merged") and clicks is not None:
         r = matching.refine_correspondences(views, clicks, **(refine_kw or {}))
         ok = np.asarray(r.valid)
@@ -170,7 +164,6 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     if method in ("auto", "merged"):
         # views larger than DEFAULT_TILING.min_pixels are matched in tiles
         a = run_auto_match(views, progress=progress, **(auto_kw or {}))
-        noise = a.noise_sigma
         ok = np.asarray(a.valid)
         apts = a.pts[ok]
         if parts:  # drop automatic points that duplicate a clicked one
@@ -194,7 +187,7 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     if len(pts) < 4:
         raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; add "
                             "clicks or use automatic matching")
-    return pts, kind, sig, idx, noise
+    return pts, kind, sig, idx
 
 
 @dataclass
@@ -513,8 +506,8 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                           "correspondences file has only its header; add points, or use "
                           "method='auto'")
     method = method or ("merged" if clicks is not None else "auto")
-    pts, kind, sigma_px, idx, noise = match_views(views, clicks, method, progress=progress,
-                                                  refine_kw=refine_kw, auto_kw=auto_kw)
+    pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress,
+                                           refine_kw=refine_kw, auto_kw=auto_kw)
     notes = []
     calib = {"pixel_size_um": exp.pixel_size_um, "pixel_size_source": exp.pixel_size_source,
              "camera": exp.stereo.camera, "method": method, "n_points": int(len(pts))}
@@ -526,9 +519,6 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         from .tiled_stereo import DEFAULT_TILING
         if DEFAULT_TILING.tiles(views[0].shape):
             calib["auto_match_tiling"] = asdict(DEFAULT_TILING)
-    if noise is not None and np.all(np.isfinite(noise)):
-        # the image noise the matcher used; the dense map takes it from here
-        calib["noise_sigma"] = [float(x) for x in noise]
     epi = epipolar_summary(pts)
     calib["epipolar"] = epi
     lines = exp.lines()
