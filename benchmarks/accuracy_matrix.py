@@ -168,10 +168,6 @@ def semlab_variants():
                                                      "curvature_neighbours": None}})
         out.append(("auto total", "auto", {"auto": {"target_sigma_px": 0.0,
                                                     "curvature_neighbours": 1}}))
-    if "step_windows" in names:  # the same, with displaced windows beside parallax steps
-        out.append(("auto total step", "auto", {"auto": {"target_sigma_px": 0.0,
-                                                         "curvature_neighbours": 1,
-                                                         "step_windows": True}}))
     return out
 
 
@@ -324,7 +320,6 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None):
         refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
         df = refs["DeepFlow"]["rmse"]
         label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else
-                                       " total step" if "step" in set_name else
                                        " total" if "total" in set_name else "")
         own = [] if sem is None else [(label, sem)]
         for name, r in own + list(refs.items()):

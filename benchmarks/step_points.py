@@ -1,5 +1,6 @@
 """Where the automatic heights are worst, whether a step of the parallax is visible there,
-and what shiftable windows (:mod:`semlab.match_step`) would gain (issue #13).
+and what shiftable windows would gain (issue #13; the opt-in ``auto_match(step_windows=True)``
+that applied them was measured negative and removed, README "Points beside slip-band steps").
 
 Run:  python benchmarks/step_points.py                       # the 5 cells below (~3 min)
       python benchmarks/step_points.py --cells polished/realistic/-5/5
@@ -13,13 +14,13 @@ at the points semlab's automatic matching accepts with total-error sizing
    with a steep true height (max |∇z| > 5 nm/px within 10 px: beside a slip band) and on
    the rest;
 2. **visible**: the residual ratio (residual variance over the noise's) of a centred 21×21
-   IC-GN subset at those points, median and fraction above 1.5 (what
-   :func:`semlab.match_step.step_candidates` flags);
+   IC-GN subset at those points, median and fraction above 1.5 (the removed step windows'
+   trigger);
 3. **gain**: the same subset displaced by ``h`` (and ``h/2``) in 8 directions: the error of
    the oracle choice among the 9 windows (the truth picks; an upper bound, which also picks
-   the luckiest noise), of the smallest residual ratio, and of the rule of
-   :func:`semlab.match_step.shiftable_refine` (a displaced window only where the centred
-   ratio > 1.5 and the displaced one is below 0.7× it).
+   the luckiest noise), of the smallest residual ratio, and of the removed step windows'
+   rule (a displaced window only where the centred ratio > 1.5 and the displaced one is
+   below 0.7× it).
 
 Heights of the 21×21 windows (step 2-3) are scored with the median error removed (no plane),
 so their RMSE is comparable between windows, not to step 1's.
@@ -42,7 +43,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
 
 from semlab import reconstruct, validation  # noqa: E402
-from semlab.match_step import shifted_offsets  # noqa: E402
 from semlab.subset import icgn_refine, prefilter_image  # noqa: E402
 
 CELLS = ("polished/realistic/-5/5", "polished/realistic/0/8", "real:fei/realistic/-5/5",
@@ -68,6 +68,17 @@ def _plane_errors(exp, tilts, pts):
     z = _heights(exp, tilts, pts[:, 0], pts[:, 1])
     zt = validation.true_height_at(exp.truth_dir, pts[:, 0])
     return 1000 * validation.height_errors(z, zt, pts[:, 0])["err_um"]
+
+
+def shifted_offsets(half_window, shift_px, angle_deg):
+    """(P, 2) int ``(dx, dy)`` offsets, ``P = (2h+1)²``, of a square subset whose centre is
+    ``shift_px`` from the point in the direction ``angle_deg`` (from +x toward +y), for
+    ``icgn_refine(subset_offsets=...)``."""
+    h = int(half_window)
+    a = np.deg2rad(angle_deg)
+    c = np.rint([shift_px * np.cos(a), shift_px * np.sin(a)]).astype(int)
+    oy, ox = np.mgrid[-h:h + 1, -h:h + 1]
+    return np.stack([ox.ravel() + c[0], oy.ravel() + c[1]], 1)
 
 
 def windows(v0, v1, p0, guess, h=10, shift_frac=1.0, smooth_sigma_px=0.8):

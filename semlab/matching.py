@@ -43,7 +43,6 @@ from scipy.stats import chi2
 from .adaptive import _grid_icgn
 from .errors import GeometryError, SemlabError
 from .match_result import MatchResult, _check_images, _check_ref_view, merge_matches
-from .match_step import shiftable_refine
 from .match_sigma import aposteriori_sigma, curvature_bias, parallax_model_error
 from .match_band import _band_orientation, _combine, _oriented_refine
 from .match_epipolar import epipolar_refine
@@ -88,7 +87,7 @@ class AutoMatchParams:
     Stages: prior (``detector``, ``ratio``, ``max_features``, ``dense_init``,
     ``dense_prior_below``, ``wide_search_px``), grid matching (``spacing_px``,
     ``half_window``, ``search_px``, ``smooth_sigma_px``, ``max_iter``, ``tol_px``,
-    ``target_sigma_px``, ``max_half_window``, ``curvature_neighbours``, ``step_windows``, ``band_aware``, ``band_half_width_px``,
+    ``target_sigma_px``, ``max_half_window``, ``curvature_neighbours``, ``band_aware``, ``band_half_width_px``,
     ``kappa``, ``epipolar``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
     ``max_roughness_px``, ``backward_px``, ``backward_sigma_p``, ``multiview_px``).
     """
@@ -122,7 +121,6 @@ class AutoMatchParams:
     epipolar: bool = True
     backward_sigma_p: float = None
     curvature_neighbours: int = None
-    step_windows: bool = False
 
 
 def auto_match(images, params=None, *, progress=True, features=None, **overrides):
@@ -302,13 +300,6 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         "auto total"``, 2026-12-02) it lowers the ratio to DeepFlow against fixed subsets on
         every cell (1.38 → 1.15× on polished/low ±5°, 1.35 → 0.96× on FEI/realistic 0/+8°,
         coverage 32 → 52 % there) but the FEI/realistic error bars miss 2σ (88 / 85 %).
-    step_windows : bool
-        Re-match the grid points whose subset misfits (residual ratio > 1.5) with the same
-        subset displaced by h in 8 directions, keeping the best-fitting window
-        (:func:`semlab.match_step.shiftable_refine`): points beside a parallax step. Opt-in:
-        on 5 accuracy-matrix cells with total-error sizing it does not lower the ratio to
-        DeepFlow (1.07 → 1.08 polished/realistic ±5°, 0.93 → 0.92 FEI; README, "Points
-        beside slip-band steps"): at realistic noise the step hardly shows in the residual.
     epipolar : bool
         Run the epipolar stage 6b (the forward–backward check of its points is along the
         epipolar direction too).
@@ -558,10 +549,6 @@ def _stage_grid_match(st, view, progress):
         "affine", init_w, sm, ref_coef, cur_coef, p.target_sigma_px, p.max_half_window,
         return_bias=True, progress=progress, max_iter=p.max_iter, tol_px=p.tol_px,
         **({"curvature_neighbours": p.curvature_neighbours} if total else {}))
-    if p.step_windows:  # subsets beside a parallax step: displaced windows (match_step)
-        r, _ = shiftable_refine(ims[ref], ims[j], gw, r, hw_j, min_zncc=p.min_zncc,
-                                smooth_sigma_px=sm, ref_prefiltered=ref_coef,
-                                cur_prefiltered=cur_coef, max_iter=p.max_iter, tol_px=p.tol_px)
     view.bias_j = bias_j if total else None
     st.side[st.work] = np.maximum(st.side[st.work], np.where(r.converged, 2 * hw_j + 1, 0))
     ok_j = r.converged & (r.zncc >= p.min_zncc)
