@@ -173,7 +173,7 @@ def main(argv=None):
     ap.add_argument("--scenes", type=int, nargs="+", help="indices of the scenes to run")
     ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
                     help="a VariationalParams field of the variational map, e.g. "
-                         "--var prior_order=2 --var solver=direct (repeatable)")
+                         "--var smooth_huber=0.2 --var solver=direct (repeatable)")
     args = ap.parse_args(argv)
     vparams = _vparams(args.var)
     print(f"variational params: {vparams}")

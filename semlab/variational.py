@@ -98,19 +98,11 @@ class VariationalParams:
         bias ``A⁻¹ Gᵀ W G d̂`` (default: the pull of the smoothing at band walls, which the
         posterior of a locally linearised model misses), the posterior alone, the noise only
         (``A⁻¹ D A⁻¹``, misses the smoothing bias) or the noise plus the bias.
-    prior_order : {1, 2}
-        Huber prior on first (default) or second differences (scale = rule / window;
-        experimental: its conjugate gradients converge slowly, so use ``solver="direct"``).
-    prior : {"tv", "tgv"}
-        ``"tv"``: the Huber prior of ``prior_order`` differences; ``"tgv"``: the
-        first+second-order prior of :mod:`semlab.variational_tgv` (the parallax against a
-        slope field, so a ramp costs nothing; scales ``s`` and ``s / prior_window_px``;
-        always solved exactly, ``solver`` ignored).
     solver : {"cg", "direct"}
         Each IRLS system and the posterior samples solved by Jacobi-preconditioned conjugate
         gradients (``cg_iter``, ``cg_tol``) or exactly by a sparse LU factor
         (``scipy.sparse.linalg.splu``, minimum-degree ordering; one factor serves all the
-        posterior samples and the bias; ~2 s (order 1) / ~8 s (order 2) per 320² window).
+        posterior samples and the bias; ~2 s per 320² window).
     """
 
     warps: int = 5
@@ -128,11 +120,8 @@ class VariationalParams:
     seed: int = 0
     prior_scale_px: float | None = None
     prior_window_px: int = 15
-    prior_order: int = 1
     sigma_mode: str = "posterior+bias"
     solver: str = "cg"
-    prior: str = "tv"
-    slope_scale_px: float | None = None
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
@@ -225,46 +214,34 @@ def _grad_y(a):
     return g
 
 
-_STENCILS = {1: (-1.0, 1.0), 2: (1.0, -2.0, 1.0)}
+def _diff(x, axis):
+    """Forward difference along ``axis`` (``n − 1`` values)."""
+    return np.diff(x, axis=axis)
 
 
-def _diff(x, axis, order):
-    """Finite difference of ``order`` 1 or 2 along ``axis`` (``n − order`` values)."""
-    n = x.shape[axis]
-    take = lambda k: x[:, k:n - order + k] if axis == 1 else x[k:n - order + k]  # noqa: E731
-    return sum(c * take(k) for k, c in enumerate(_STENCILS[order]))
-
-
-def _diff_t(f, axis, order, shape):
+def _diff_t(f, axis, shape):
     """Adjoint of :func:`_diff`: scatter ``f`` back onto an array of ``shape``."""
     out = np.zeros(shape)
-    n = shape[axis]
-    for k, c in enumerate(_STENCILS[order]):
-        if axis == 1:
-            out[:, k:n - order + k] += c * f
-        else:
-            out[k:n - order + k] += c * f
+    if axis == 1:
+        out[:, 1:] += f
+        out[:, :-1] -= f
+    else:
+        out[1:] += f
+        out[:-1] -= f
     return out
 
 
-def _order(x_shape, wh):
-    return x_shape[1] - wh.shape[1]
-
-
 def _laplace_apply(x, wh, wv):
-    """``Gᵀ W G x``, ``G`` the first or second differences (order read from ``wh``)."""
-    o = _order(x.shape, wh)
-    return (_diff_t(wh * _diff(x, 1, o), 1, o, x.shape)
-            + _diff_t(wv * _diff(x, 0, o), 0, o, x.shape))
+    """``Gᵀ W G x``, ``G`` the first differences."""
+    return _diff_t(wh * _diff(x, 1), 1, x.shape) + _diff_t(wv * _diff(x, 0), 0, x.shape)
 
 
 def _laplace_diag(wh, wv, shape):
-    o = _order(shape, wh)
     d = np.zeros(shape)
-    n, m = shape
-    for k, c in enumerate(_STENCILS[o]):
-        d[:, k:m - o + k] += c * c * wh
-        d[k:n - o + k] += c * c * wv
+    d[:, :-1] += wh
+    d[:-1] += wv
+    d[:, 1:] += wh
+    d[1:] += wv
     return d
 
 
@@ -291,15 +268,14 @@ def _cg(D, wh, wv, b, x0, n_iter, tol):
     return x
 
 
-def _diff_matrix(shape, axis, order):
+def _diff_matrix(shape, axis):
     """Sparse matrix of :func:`_diff` along ``axis`` on a C-ordered ``shape`` grid."""
     from scipy import sparse
 
     n, m = shape
     length = shape[axis]
-    st = _STENCILS[order]
-    d1 = sparse.diags([np.full(length - order, c) for c in st], list(range(order + 1)),
-                      shape=(length - order, length))
+    d1 = sparse.diags([np.full(length - 1, -1.0), np.full(length - 1, 1.0)], [0, 1],
+                      shape=(length - 1, length))
     if axis == 1:
         return sparse.kron(sparse.identity(n), d1, format="csr")
     return sparse.kron(d1, sparse.identity(m), format="csr")
@@ -310,8 +286,7 @@ def _factor(D, wh, wv):
     from scipy import sparse
     from scipy.sparse.linalg import splu
 
-    o = _order(D.shape, wh)
-    gh, gv = _diff_matrix(D.shape, 1, o), _diff_matrix(D.shape, 0, o)
+    gh, gv = _diff_matrix(D.shape, 1), _diff_matrix(D.shape, 0)
     A = (sparse.diags(D.ravel()) + gh.T @ sparse.diags(wh.ravel()) @ gh
          + gv.T @ sparse.diags(wv.ravel()) @ gv)
     lu = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
@@ -452,10 +427,6 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     from .heightmap import _check_roi
 
     prm = params or VariationalParams()
-    if prm.prior_order not in (1, 2):
-        raise SemlabError(f"VariationalParams.prior_order must be 1 or 2, got {prm.prior_order!r}")
-    if prm.prior not in ("tv", "tgv"):
-        raise SemlabError(f"VariationalParams.prior must be 'tv' or 'tgv', got {prm.prior!r}")
     if prm.solver not in ("cg", "direct"):
         raise SemlabError(f"VariationalParams.solver must be 'cg' or 'direct', got "
                           f"{prm.solver!r}")
@@ -543,9 +514,9 @@ def _window_scale(lv, d, e, window):
     return float(np.median(1.0 / np.sqrt(np.maximum(good, 1e-12)))) if good.size else 1.0
 
 
-def _edge_weights(d, s, c, order=1):
-    wh = _huber_w(_diff(d, 1, order) / s, c) / s ** 2
-    wv = _huber_w(_diff(d, 0, order) / s, c) / s ** 2
+def _edge_weights(d, s, c):
+    wh = _huber_w(_diff(d, 1) / s, c) / s ** 2
+    wv = _huber_w(_diff(d, 0) / s, c) / s ** 2
     return wh, wv
 
 
@@ -560,9 +531,8 @@ def _samples(D, wh, wv, prm, rng, n, prior=True):
     for _ in range(int(n)):
         b = np.sqrt(D) * rng.standard_normal(D.shape)
         if prior:
-            o = _order(D.shape, wh)
-            b += _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, o, D.shape)
-            b += _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, o, D.shape)
+            b += _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, D.shape)
+            b += _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, D.shape)
         out.append(solve(b))
     return out, solve
 
@@ -574,18 +544,7 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     rng = np.random.default_rng(prm.seed)
     if s is None:
         s = _window_scale(lv, dl, e, prm.prior_window_px)
-        if prm.prior_order == 2 and prm.prior == "tv":
-            s = s / prm.prior_window_px
         info["prior_rule"] = f"data-only 1σ of a {prm.prior_window_px}-px window"
-    tgv = None
-    if prm.prior == "tgv":
-        from . import variational_tgv as tg
-
-        s2 = (prm.slope_scale_px if prm.slope_scale_px is not None
-              else s * np.sqrt(12.0) / prm.prior_window_px)
-        tgv = dict(ops=tg.tgv_operators(dl.shape), s2=s2)
-        info["slope_scale_px"] = float(s2)
-        wsl = tg.initial_slopes(dl)
     k = 1.0
     for _ in range(prm.warps):
         w1, J, sig, inside = lv.warp(dl, e)
@@ -599,11 +558,7 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
             wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
                           / (k * sig) ** 2, 0.0)
             D = wd * J * J
-            if tgv is not None:
-                dl, wsl = tg.tgv_step(D, D * dw - wd * J * r0, dl, wsl, s, tgv["s2"],
-                                      prm.smooth_huber, tgv["ops"])
-                continue
-            wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
+            wh, wv = _edge_weights(dl, s, prm.smooth_huber)
             dl = _linear_solver(D, wh, wv, prm)(D * dw - wd * J * r0, dl)
     # posterior variance at the last linearisation
     w1, J, sig, inside = lv.warp(dl, e)
@@ -611,18 +566,12 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
     post = prm.sigma_mode.startswith("posterior")
-    if tgv is not None:
-        xs, bias = tg.tgv_samples(D, dl, wsl, s, tgv["s2"], prm.smooth_huber, rng,
-                                  prm.n_samples, post, tgv["ops"])
-    else:
-        wh, wv = _edge_weights(dl, s, prm.smooth_huber, prm.prior_order)
-        xs, solve = _samples(D, wh, wv, prm, rng, prm.n_samples, post)
+    wh, wv = _edge_weights(dl, s, prm.smooth_huber)
+    xs, solve = _samples(D, wh, wv, prm, rng, prm.n_samples, post)
     var = np.mean([x * x for x in xs], 0)
     if prm.sigma_mode in ("noise+bias", "posterior+bias"):
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂)
-        if tgv is None:
-            bias = solve(_laplace_apply(dl, wh, wv))
-        var = var + bias ** 2
+        var = var + solve(_laplace_apply(dl, wh, wv)) ** 2
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
     g = lambda a: ndimage.gaussian_filter(a, prm.norm_sigma_px, mode="reflect")  # noqa: E731
