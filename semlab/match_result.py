@@ -45,11 +45,6 @@ class MatchResult:
         None in results made without it.
     params : AutoMatchParams or None
         The parameters of :func:`auto_match` that made the result (None for clicks).
-    noise_sigma : (V,) float array or None
-        Image noise σ of each view (grey units) behind ``sigma_px``, as the matcher's IC-GN
-        calibrated it (:func:`semlab.subset.icgn_refine`'s default; the reference view's
-        the median over its view pairs; NaN for a view not matched). The dense height maps
-        take it from here instead of measuring it again. None where not recorded.
     """
 
     pts: np.ndarray
@@ -62,7 +57,6 @@ class MatchResult:
     source_index: np.ndarray
     subset_px: np.ndarray = None
     params: object = None
-    noise_sigma: np.ndarray = None
 
     def __len__(self):
         return len(self.pts)
@@ -176,8 +170,7 @@ def merge_matches(a, b, min_separation_px=3):
                        ref_view=a.ref_view,
                        kind=np.concatenate([a.kind[ka], b.kind[kb]]),
                        source_index=np.concatenate([a.source_index[ka], b.source_index[kb]]),
-                       subset_px=_merge_subset_px(a, ka, b, kb),
-                       noise_sigma=a.noise_sigma if a.noise_sigma is not None else b.noise_sigma)
+                       subset_px=_merge_subset_px(a, ka, b, kb))
 
 
 def _merge_subset_px(a, ka, b, kb):

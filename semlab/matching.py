@@ -373,7 +373,6 @@ class _AutoState:
     model_x: np.ndarray = None  # (n, v) model error
     bias: np.ndarray = None     # (n, v) curvature bias of the sized subsets, pixels (NaN:
     #                             not measured)
-    noise: dict = field(default_factory=dict)      # view -> (σ ref, σ view) of its IC-GN
 
     @property
     def n(self):
@@ -587,8 +586,6 @@ def _stage_record(st, view):
     p, work, j, r = st.params, st.work, view.j, view.r
     st.out[work, j] = view.pts_j
     st.zn[work, j] = view.zn_j
-    if r.noise_sigma is not None:
-        st.noise[j] = np.asarray(r.noise_sigma, float)[:2]
     st.sig_x[work, j] = view.sig_j
     st.sig_ap[work, j] = aposteriori_sigma(view.sig_j, view.rr_j)
     # the square subset's curvature bias (total-error sizing); NaN: none measured (fixed
@@ -760,19 +757,7 @@ def _stage_result(st, progress):
         tqdm.write(f"auto_match: {valid.sum()} of {n} grid points accepted")
     return MatchResult(pts=st.out, zncc=st.zn, valid=valid, sigma_px=sigma,
                        reason=st.reason.astype(str), ref_view=st.ref, kind=np.full(n, "auto"),
-                       source_index=st.gidx, subset_px=st.side, params=st.params,
-                       noise_sigma=_view_noise(st.noise, st.v, st.ref))
-
-
-def _view_noise(noise, v, ref):
-    """(V,) noise σ per view from the pairs' IC-GN calibrations ``{j: (σ ref, σ j)}``: the
-    reference view's the median over its pairs; NaN where a view was not matched."""
-    out = np.full(v, np.nan)
-    for j, (s_ref, s_j) in noise.items():
-        out[j] = s_j
-    if noise:
-        out[ref] = float(np.median([s[0] for s in noise.values()]))
-    return out
+                       source_index=st.gidx, subset_px=st.side, params=st.params)
 
 
 def _epipolar_stage(ref_img, img, gw, M, e, start, pts_j, sig_j, rr_j, ok_j, r, half_window,

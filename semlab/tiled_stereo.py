@@ -196,7 +196,7 @@ def _match_task(crops, params, features):
         r = auto_match(crops, params, progress=False, features=features)
     except GeometryError as exc:          # e.g. a featureless tile: its points stay invalid
         return str(exc)
-    return r.pts, r.zncc, r.valid, r.sigma_px, r.reason, r.subset_px, r.noise_sigma
+    return r.pts, r.zncc, r.valid, r.sigma_px, r.reason, r.subset_px
 
 
 def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progress=True,
@@ -219,8 +219,7 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
     and texture noise; with ``smooth_sigma_px=None`` each tile chooses its own
     pre-smoothing; the multi-view threshold (3+ views) is per tile. A tile where
     ``auto_match`` fails (too few features: a featureless corner) leaves its points
-    invalid with the reason. The result's ``noise_sigma`` is the median over the tiles of
-    theirs.
+    invalid with the reason.
 
     Parameters
     ----------
@@ -310,7 +309,6 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
     sigma = np.full(n, np.nan)
     reason = np.full(n, "not matched in its tile", dtype=object)
     side = np.zeros(n, int)
-    noises = []                          # each tile's (V,) noise σ
     with dask_client(scheduler) as client:
         for i, res in map_tiles(client, _match_task, jobs(), len(plans), "matching tiles",
                                 progress):
@@ -319,9 +317,7 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
                 reason[core_idx] = (f"tile x {tile.x0}:{tile.x1}, y {tile.y0}:{tile.y1}: "
                                     f"{res}")
                 continue
-            pts, z, ok, sg, why, sub, tile_noise = res
-            if tile_noise is not None:
-                noises.append(tile_noise)
+            pts, z, ok, sg, why, sub = res
             b = boxes[ref]
             col = np.rint((pts[:, ref, 0] + b[2] - margin) / s).astype(int)
             row = np.rint((pts[:, ref, 1] + b[0] - margin) / s).astype(int)
@@ -339,18 +335,7 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
                    f"({len(plans)} tiles)")
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma,
                        reason=reason.astype(str), ref_view=ref, kind=np.full(n, "auto"),
-                       source_index=np.arange(n), subset_px=side, params=p,
-                       noise_sigma=_median_noise(noises, v))
-
-
-def _median_noise(noises, v):
-    """(V,) median over the tiles of their noise σ per view (NaN-aware), or None."""
-    if not noises:
-        return None
-    a = np.asarray(noises, float).reshape(len(noises), v)
-    ok = np.isfinite(a)
-    return np.array([np.median(a[ok[:, j], j]) if ok[:, j].any() else np.nan
-                     for j in range(v)])
+                       source_index=np.arange(n), subset_px=side, params=p)
 
 
 def run_auto_match(images, *, tiling=None, progress=True, **kw):
