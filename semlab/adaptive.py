@@ -82,6 +82,13 @@ class AdaptiveResult:
         With ``curvature_neighbours``: the predicted curvature bias of the chosen match
         (the larger of x and y), pixels; the predicted total error is
         ``√(sigma² + bias²)``. None otherwise.
+    bias_rms_px : (N,) float array or None
+        With ``curvature_neighbours``: the root of the expected squared curvature bias of
+        the chosen match given the ladder (:func:`_nested_bias`: ``√(β̂² + var β̂) c_h``
+        from the independent increments of the nested subsets' matches), the larger of x
+        and y, pixels: the bias term of an error bar of the uncorrected match (``bias_px``
+        is the de-biased point estimate that sizes the subset, 0 wherever the bias is
+        below its noise). None otherwise.
     """
 
     subset: SubsetResult
@@ -90,6 +97,7 @@ class AdaptiveResult:
     target_met: np.ndarray
     target_sigma_px: float
     bias_px: np.ndarray = None
+    bias_rms_px: np.ndarray = None
 
     def __len__(self):
         return len(self.half_window)
@@ -359,9 +367,71 @@ def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_
         best = replace(best, reason=reason.astype(str))
     hw = np.where(conv, np.asarray(hs)[choice], 0)
     b_ch = np.where(conv, bias[choice, idx].max(-1), np.nan)
+    # the error bar's bias term: expected squared bias given the ladder, at the chosen size
+    beta_n, var_n = _nested_bias(U, S, fin, c)
+    if kk > 1:
+        cnt_n = np.isfinite(beta_n[nb]).sum(1)
+        beta_n = _nanmean(beta_n[nb], axis=1)
+        var_n = _nanmean(var_n[nb], axis=1) / np.maximum(cnt_n, 1)
+    ms = np.where(np.isfinite(beta_n) & np.isfinite(var_n), beta_n ** 2 + var_n, 0.0)
+    b_rms = np.where(conv, np.sqrt(ms).max(-1) * c[choice], np.nan)
     return AdaptiveResult(subset=best, half_window=hw,
                           shape_function=np.where(conv, warp, "").astype(str),
-                          target_met=met, target_sigma_px=target, bias_px=b_ch)
+                          target_met=met, target_sigma_px=target, bias_px=b_ch,
+                          bias_rms_px=b_rms)
+
+
+def _nested_bias(U, S, fin, c):
+    """Bias coefficient of nested subsets' matches from their increments, and its variance.
+
+    For nested subsets the match of the larger one shares the smaller one's pixels: under
+    noise alone (and information spread like the pixels) the matches behave like
+    cumulative means, whose increments between successive sizes are independent with
+    variance ``σ_k² − σ_{k+1}²``. With ``u_h = u + β c_h + noise`` the increments are
+    ``β Δc_k + ε_k``, and the generalised least-squares estimate is
+    ``β̂ = Σ Δc_k Δu_k / v_k / Σ Δc_k² / v_k``, ``var β̂ = 1 / Σ Δc_k² / v_k``
+    (``v_k = σ_k² − σ_{k+1}²``; increments with ``v_k <= 0`` or between unconverged sizes
+    are skipped; a skipped size joins the next converged one). Treating the matches as
+    independent (as the weighted fit of :func:`_total_error_select` does) spreads its
+    variance estimate over the whole ladder: ``(σ_first² − σ_last²) / Δc²`` is several
+    times this one.
+
+    Parameters
+    ----------
+    U, S : (H, N, 2) arrays
+        Matches (px) and their noise σ (px) over the H sizes of the ladder.
+    fin : (H, N, 2) bool array
+        Usable entries.
+    c : (H,) array
+        ``h (h + 1) / 6`` of each size.
+
+    Returns
+    -------
+    beta, var : (N, 2) arrays (NaN where fewer than two usable sizes).
+    """
+    nh = len(c)
+    a = np.zeros(U.shape[1:])
+    b = np.zeros(U.shape[1:])
+    # the previous usable size of every point and component, walking up the ladder
+    prev_u = np.where(fin[0], U[0], np.nan)
+    prev_s = np.where(fin[0], S[0], np.nan)
+    prev_c = np.where(fin[0], c[0], np.nan)
+    for k in range(1, nh):
+        with np.errstate(invalid="ignore"):
+            v = prev_s ** 2 - S[k] ** 2
+            use = fin[k] & np.isfinite(prev_u) & (v > 0)
+        dc = np.where(use, c[k] - prev_c, 0.0)
+        vv = np.where(use, v, 1.0)
+        a += np.where(use, dc ** 2 / vv, 0.0)
+        b += np.where(use, dc * (np.where(use, U[k], 0.0) - np.where(use, prev_u, 0.0)) / vv,
+                      0.0)
+        prev_u = np.where(fin[k], U[k], prev_u)
+        prev_s = np.where(fin[k], S[k], prev_s)
+        prev_c = np.where(fin[k], c[k], prev_c)
+    ok = a > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (np.where(ok, b / np.where(ok, a, 1.0), np.nan),
+                np.where(ok, 1.0 / np.where(ok, a, 1.0), np.nan))
 
 
 def _nanmean(a, axis):
@@ -406,7 +476,8 @@ def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_si
                **kw):
     """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``; returns the
     SubsetResult and the (N,) half sizes used (and with ``return_bias`` the (N,) curvature
-    bias in pixels of :func:`adaptive_icgn` with ``curvature_neighbours``, 0 without)."""
+    bias in pixels of :func:`adaptive_icgn` with ``curvature_neighbours``, 0 without:
+    ``AdaptiveResult.bias_px``, or with ``return_bias="rms"`` its ``bias_rms_px``)."""
     if target_sigma_px is None:
         r = icgn_refine(ref_img, img, pts, guess, half_window=half_window, warp=warp,
                         init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
@@ -421,6 +492,7 @@ def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_si
     # a point that missed the target is still a match (its sigma says how good)
     reason = np.where(a.subset.converged, "", a.subset.reason)
     if return_bias:
-        bias = np.zeros(len(pts)) if a.bias_px is None else np.nan_to_num(a.bias_px)
+        b = a.bias_rms_px if return_bias == "rms" else a.bias_px
+        bias = np.zeros(len(pts)) if b is None else np.nan_to_num(b)
         return replace(a.subset, reason=reason), np.maximum(a.half_window, 0), bias
     return replace(a.subset, reason=reason), np.maximum(a.half_window, 0)
