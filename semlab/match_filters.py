@@ -100,7 +100,8 @@ def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sig
     return dist, aposteriori_sigma(sig, r.residual_ratio)
 
 
-def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=0):
+def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=0,
+                        view_mask=None):
     """Per-point residual (pixels) of the multi-view x coordinates to a rank-2 model.
 
     For an affine camera tilted about an axis near the image y axis, the x coordinates of a
@@ -113,6 +114,12 @@ def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=
     and hides them), and is re-fitted without the points beyond
     ``max(n_mad · 1.4826 MAD, floor_px)``; each point's residual is the RMS over views of
     its distance to the fitted model. Needs V >= 3 (else zeros).
+
+    ``view_mask`` (N, V) bool, optional: rows valid in only some views (at least 3, the
+    reference among them) are tested against the model fitted on ``mask``: their ``(x, z)``
+    fitted to their own views, the residual scaled to the full rows' (its sum of squares per
+    degree of freedom, ``|S| - 2`` of them, times ``(V - 2) / V``); rows with fewer views
+    get NaN.
 
     Returns
     -------
@@ -148,6 +155,18 @@ def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=
             break
         use = new
     res[~fin] = np.nan
+    if view_mask is not None:
+        vm = np.asarray(view_mask, bool)
+        part = ~vm.all(axis=1)
+        res[part] = np.nan
+        basis = vt[:2].T                        # (V, 2) the fitted rank-2 subspace
+        for pattern in np.unique(vm[part & (vm.sum(1) >= 3) & vm[:, ref]], axis=0):
+            rows = np.flatnonzero((vm == pattern).all(axis=1))
+            dc = np.where(pattern, U[rows], 0.0) - mu[:-1]
+            rr = (dc - (y[rows] - mu[-1])[:, None] * beta)[:, pattern]
+            coef = np.linalg.lstsq(basis[pattern], rr.T, rcond=None)[0]
+            e2 = np.sum((rr - (basis[pattern] @ coef).T) ** 2, axis=1)
+            res[rows] = np.sqrt(e2 / (pattern.sum() - 2) * (v - 2) / v)
     return res, float(np.sqrt(np.mean(res[use] ** 2)))
 
 

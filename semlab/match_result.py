@@ -43,6 +43,16 @@ class MatchResult:
         views: its spatial resolution (times the pixel size in µm). With
         ``target_sigma_px`` it is chosen per point (:func:`semlab.adaptive.adaptive_icgn`);
         None in results made without it.
+    view_valid : (N, V) bool array or None
+        Per view: the match in that view passed every test of that view (the reference
+        column is True for the points that were matched at all). ``valid`` is True where
+        all views are; a point matched in the reference and at least one other view still
+        has a height (:meth:`seen_in`, :func:`semlab.reconstruct.heights_from_tilts` with
+        ``view_valid``). None in results made without it (every view as ``valid``).
+    view_sigma_px : (N, V) float array or None
+        1σ matching error (pixels, x) of each view's match: its noise σ with the a
+        posteriori factor and its model error; 0 in the reference view, NaN where the view
+        is not valid. ``sigma_px`` is the root mean square of its non-reference columns.
     params : AutoMatchParams or None
         The parameters of :func:`auto_match` that made the result (None for clicks).
     """
@@ -57,6 +67,8 @@ class MatchResult:
     source_index: np.ndarray
     subset_px: np.ndarray = None
     params: object = None
+    view_valid: np.ndarray = None
+    view_sigma_px: np.ndarray = None
 
     def __len__(self):
         return len(self.pts)
@@ -72,11 +84,30 @@ class MatchResult:
         return replace(self, pts=self.pts[m], zncc=self.zncc[m], valid=self.valid[m],
                        sigma_px=self.sigma_px[m], reason=self.reason[m], kind=self.kind[m],
                        source_index=self.source_index[m],
-                       subset_px=None if self.subset_px is None else self.subset_px[m])
+                       subset_px=None if self.subset_px is None else self.subset_px[m],
+                       view_valid=None if self.view_valid is None else self.view_valid[m],
+                       view_sigma_px=None if self.view_sigma_px is None
+                       else self.view_sigma_px[m])
 
     def only_valid(self):
         """The valid points only."""
         return self.select(self.valid)
+
+    def views_valid(self):
+        """(N, V) bool: which views of each point are valid (``view_valid``, or ``valid`` in
+        every view where the result has no per-view record)."""
+        if self.view_valid is not None:
+            return np.asarray(self.view_valid, bool)
+        return np.repeat(np.asarray(self.valid, bool)[:, None], self.n_views, axis=1)
+
+    def seen_in(self, min_views=2):
+        """The points valid in at least ``min_views`` views, the reference view included
+        (``min_views = V``: :meth:`only_valid`). Their heights need
+        :func:`semlab.reconstruct.heights_from_tilts` with ``view_valid``."""
+        if not 2 <= int(min_views) <= self.n_views:
+            raise SemlabError(f"min_views must be in 2..{self.n_views}, got {min_views!r}")
+        vv = self.views_valid()
+        return self.select(vv[:, self.ref_view] & (vv.sum(1) >= int(min_views)))
 
 
 def _check_images(images, n_views=None):
@@ -170,7 +201,9 @@ def merge_matches(a, b, min_separation_px=3):
                        ref_view=a.ref_view,
                        kind=np.concatenate([a.kind[ka], b.kind[kb]]),
                        source_index=np.concatenate([a.source_index[ka], b.source_index[kb]]),
-                       subset_px=_merge_subset_px(a, ka, b, kb))
+                       subset_px=_merge_subset_px(a, ka, b, kb),
+                       view_valid=None if a.view_valid is None and b.view_valid is None else
+                       np.concatenate([a.views_valid()[ka], b.views_valid()[kb]]))
 
 
 def _merge_subset_px(a, ka, b, kb):

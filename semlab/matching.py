@@ -353,7 +353,7 @@ class _AutoState:
     zn: np.ndarray              # (n, v) ZNCC
     sig_x: np.ndarray           # (n, v) noise σ of the match
     sig_ap: np.ndarray          # sig_x with the a posteriori variance factor
-    valid: np.ndarray
+    vv: np.ndarray              # (n, v) bool: the view's match passed its tests so far
     reason: np.ndarray
     side: np.ndarray            # (n,) subset side, pixels
     epi: np.ndarray             # (n, v) matched along the epipolar direction only
@@ -377,6 +377,28 @@ class _AutoState:
     @property
     def n(self):
         return len(self.grid)
+
+    @property
+    def valid(self):
+        """(n,) bool: valid in every view."""
+        return self.vv.all(axis=1)
+
+    def fail(self, rows, j, why):
+        """Mark view ``j`` (None: every view) of the points ``rows`` invalid; ``why``: the
+        reason (a string, or one per row), kept where a point has none yet (its first)."""
+        rows = np.asarray(rows, int).ravel()
+        whys = [why] * len(rows) if isinstance(why, str) else list(why)
+        for i, w in zip(rows, whys):
+            if not self.reason[i]:
+                self.reason[i] = w if j is None else f"view {j}: {w}"
+        if j is None:
+            self.vv[rows] = False
+        else:
+            self.vv[rows, j] = False
+
+    def alive(self, j):
+        """Indices of the points whose match in view ``j`` is still valid."""
+        return np.flatnonzero(self.vv[:, j])
 
 
 def _stage_setup(images, params):
@@ -425,7 +447,7 @@ def _stage_setup(images, params):
     sm = p.smooth_sigma_px
     return _AutoState(
         params=p, ims=ims, v=v, ref=ref, grid=grid, gidx=gidx, out=out, zn=zn,
-        sig_x=np.zeros((n, v)), sig_ap=np.zeros((n, v)), valid=np.ones(n, bool),
+        sig_x=np.zeros((n, v)), sig_ap=np.zeros((n, v)), vv=np.ones((n, v), bool),
         reason=np.full(n, "", dtype=object), side=np.zeros(n, int),
         epi=np.zeros((n, v), bool), bias=np.full((n, v), np.nan), noise0=noise0, eps=eps,
         sub_std=_subset_std(ims[ref], p.half_window, grid), ref8=_to_uint8(ims[ref]),
@@ -489,11 +511,10 @@ def _stage_texture(st, view):
     contrast = np.sqrt(np.maximum(st.sub_std ** 2 - noise ** 2, 0.0))
     textured = contrast >= p.min_texture_snr * noise
     noise_i = np.broadcast_to(noise, contrast.shape)
-    for i in np.flatnonzero(~textured):
-        st.reason[i] = (f"low texture: subset contrast {contrast[i]:.2f} < "
+    low = np.flatnonzero(~textured)
+    st.fail(low, None, [f"low texture: subset contrast {contrast[i]:.2f} < "
                         f"min_texture_snr × noise = {p.min_texture_snr * noise_i[i]:.2f} "
-                        "(featureless background?)")
-    st.valid &= textured
+                        "(featureless background?)" for i in low])
     st.work = np.flatnonzero(textured)
     st.gw = grid[st.work]
 
@@ -592,15 +613,9 @@ def _stage_record(st, view):
     # or noise-only sizing, or an epipolar match)
     st.bias[work, j] = np.where(st.epi[work, j] | (view.bias_j is None), np.nan,
                                 0.0 if view.bias_j is None else view.bias_j)
-    for k in np.flatnonzero(~view.ok_j):
-        i = work[k]
-        if not r.converged[k]:
-            why = r.reason[k]
-        else:
-            why = f"zncc {view.zn_j[k]:.2f} < min_zncc {p.min_zncc}"
-        if st.valid[i]:
-            st.reason[i] = f"view {j}: {why}"
-    st.valid[work[~view.ok_j]] = False
+    bad = np.flatnonzero(~view.ok_j)
+    st.fail(work[bad], j, [r.reason[k] if not r.converged[k] else
+                           f"zncc {view.zn_j[k]:.2f} < min_zncc {p.min_zncc}" for k in bad])
     rr = st.out[:, j] - _apply_affine(view.M, st.grid)
     st.resid[j] = (rr @ view.e, rr @ view.eperp)
     st.e_dir[j] = view.e
@@ -614,34 +629,28 @@ def _stage_record(st, view):
 
 def _filter_consistency(st):
     """Stage 7a: local consistency of parallax and cross-parallax against grid neighbours
-    (twice)."""
-    p, valid, reason, grid = st.params, st.valid, st.reason, st.grid
+    (twice), each view against the neighbours valid in it."""
+    p, grid = st.params, st.grid
     for _ in range(2 if p.consistency_px is not None else 0):
-        idx = np.flatnonzero(valid)
-        if len(idx) < 4:
-            break
         for j, (pa, pe) in st.resid.items():
             for name, val in (("parallax", pa), ("cross-parallax", pe)):
+                idx = st.alive(j)
+                if len(idx) < 4:
+                    continue
                 out_l = _local_outliers(grid[idx], val[idx], 8, p.consistency_px)
-                for i in idx[out_l]:
-                    if valid[i]:
-                        reason[i] = f"view {j}: {name} inconsistent with its neighbours"
-                valid[idx[out_l]] = False
+                st.fail(idx[out_l], j, f"{name} inconsistent with its neighbours")
 
 
 def _filter_roughness(st):
     """Stage 7b: the model error of each point (the non-affine part of the parallax around
     it) and the local planarity test (``max_roughness_px``)."""
-    p, valid, reason, grid, side, sig_x = st.params, st.valid, st.reason, st.grid, st.side, \
-        st.sig_x
-    others = [j for j in range(st.v) if j != st.ref]
-    sigma = np.sqrt(np.mean(sig_x[:, others] ** 2, axis=1))
+    p, grid, side, sig_x = st.params, st.grid, st.side, st.sig_x
     st.model_x = model_x = np.zeros((st.n, st.v))
-    if valid.sum() < 12:
-        return
-    idx = np.flatnonzero(valid)
-    thr = max(p.max_roughness_px or 0.0, 2.0 * float(np.median(sigma[idx])))
     for j, (pa, _) in st.resid.items():
+        idx = st.alive(j)
+        if len(idx) < 12:
+            continue
+        thr = max(p.max_roughness_px or 0.0, 2.0 * float(np.median(sig_x[idx, j])))
         curved = j in st.curved
         # with the dense prior (a tall object) the parallax is curved on the scale of the
         # neighbourhood: test against local quadrics, which still reject steps
@@ -664,11 +673,8 @@ def _filter_roughness(st):
         thr_j = thr if med <= thr else \
             max(thr, med + 4 * 1.4826 * float(np.median(np.abs(rough - med))))
         bad = rough > thr_j
-        for i, rr in zip(idx[bad], rough[bad]):
-            if valid[i]:
-                reason[i] = (f"view {j}: parallax not locally planar (plane RMS {rr:.2f} px "
-                             f"> {thr_j:.2f} px: steep flank)")
-        valid[idx[bad]] = False
+        st.fail(idx[bad], j, [f"parallax not locally planar (plane RMS {rr:.2f} px "
+                              f"> {thr_j:.2f} px: steep flank)" for rr in rough[bad]])
 
 
 def _filter_backward(st):
@@ -680,14 +686,14 @@ def _filter_backward(st):
     alone). A point that passes
     with ``d > backward_px`` carries the disagreement in its error bar: ``d² / 4`` is
     added to its variance in that view (the two matches bracket it)."""
-    p, valid, ims, ref = st.params, st.valid, st.ims, st.ref
+    p, ims, ref = st.params, st.ims, st.ref
     if p.backward_px is None:
         return
     k = np.sqrt(chi2.ppf(p.backward_sigma_p, 2)) if p.backward_sigma_p else 0.0
     for j, (coef_j, warp_j, hw_full, e_j, epi_coef) in st.fwd_state.items():
-        idx = np.flatnonzero(valid)
+        idx = st.alive(j)
         if len(idx) == 0:
-            break
+            continue
         fb_d = np.full(len(idx), np.nan)
         sig_b = np.full(len(idx), np.nan)
         for h in np.unique(hw_full[idx]):      # the backward match uses the same subset
@@ -704,12 +710,10 @@ def _filter_backward(st):
         if k:                                  # σ may be inf (texture below the noise)
             tol = np.fmax(tol, k * np.hypot(st.sig_ap[idx, j], sig_b))
         bad = ~(fb_d <= tol)
-        for i, dd, tt in zip(idx[bad], fb_d[bad], tol[bad]):
-            st.reason[i] = (f"view {j}: forward–backward mismatch "
-                            + ("(backward match failed)" if np.isnan(dd) else
-                               f"{dd:.2f} px > {tt:.2f} px (backward_px {p.backward_px}, "
-                               "or the χ² bound of its error bars)"))
-        valid[idx[bad]] = False
+        st.fail(idx[bad], j, ["forward–backward mismatch " + (
+            "(backward match failed)" if np.isnan(dd) else
+            f"{dd:.2f} px > {tt:.2f} px (backward_px {p.backward_px}, "
+            "or the χ² bound of its error bars)") for dd, tt in zip(fb_d[bad], tol[bad])])
         wide = ~bad & (fb_d > p.backward_px)
         st.sig_ap[idx[wide], j] = np.hypot(st.sig_ap[idx[wide], j], fb_d[wide] / 2)
 
@@ -720,29 +724,31 @@ def _stage_curvature(st):
     (:func:`semlab.match_sigma.curvature_bias`, each point's own subset size), measured
     from the accepted points' parallax; the forward–backward test above judged the
     matches as they were."""
-    idx = np.flatnonzero(st.valid)
-    if len(idx) < 12:
-        return
-    h = np.maximum((st.side[idx] - 1) // 2, 1)
     for j in sorted(st.curved):
+        idx = st.alive(j)
+        if len(idx) < 12:
+            continue
+        h = np.maximum((st.side[idx] - 1) // 2, 1)
         b = curvature_bias(st.grid[idx], st.resid[j][0][idx], h)
         st.out[idx, j] -= b[:, None] * st.e_dir[j]
 
 
 def _filter_multiview(st):
-    """Stage 7c: with 3 or more views, the rank-2 tilt-series test (``multiview_px``)."""
+    """Stage 7c: with 3 or more views, the rank-2 tilt-series test (``multiview_px``),
+    fitted on the points valid in every view; a point valid in 3 or more views but not all
+    is tested against that model with its own views (one seen in two cannot be)."""
     p, valid = st.params, st.valid
     if p.multiview_px is None or st.v < 3 or valid.sum() < 8:
         return
-    mres, _ = _multiview_residual(st.out, st.ref, valid, seed=p.seed)
+    vm = st.vv & st.vv[:, [st.ref]]
+    mres, _ = _multiview_residual(st.out, st.ref, valid, seed=p.seed, view_mask=vm)
     r_in = mres[valid]
     thr = max(np.median(r_in) + 4 * 1.4826 * np.median(np.abs(r_in - np.median(r_in))),
               p.multiview_px)
-    bad = valid & ~(mres <= thr)
-    for i in np.flatnonzero(bad):
-        st.reason[i] = (f"views inconsistent: x coordinates off the rank-2 tilt-series model "
-                        f"by {mres[i]:.2f} px > {thr:.2f} px")
-    valid &= ~bad
+    tested = vm.sum(1) >= 3
+    bad = np.flatnonzero(tested & ~(mres <= thr))
+    st.fail(bad, None, [f"views inconsistent: x coordinates off the rank-2 tilt-series model "
+                        f"by {mres[i]:.2f} px > {thr:.2f} px" for i in bad])
 
 
 def _stage_result(st, progress):
@@ -750,14 +756,20 @@ def _stage_result(st, progress):
     :class:`MatchResult`."""
     others = [j for j in range(st.v) if j != st.ref]
     valid, n = st.valid, st.n
-    sigma = np.sqrt(np.mean(st.sig_ap[:, others] ** 2 + st.model_x[:, others] ** 2, axis=1))
-    sigma[~valid] = np.nan
+    vv = st.vv & st.vv[:, [st.ref]] & (st.vv[:, others].any(axis=1))[:, None]
+    view_sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
+    view_sig[:, st.ref] = 0.0
+    view_sig[~vv] = np.nan
+    seen = vv[:, others].any(axis=1)
+    sigma = np.full(n, np.nan)
+    sigma[seen] = np.sqrt(np.nanmean(view_sig[seen][:, others] ** 2, axis=1))
     if progress:
         from tqdm.auto import tqdm
         tqdm.write(f"auto_match: {valid.sum()} of {n} grid points accepted")
     return MatchResult(pts=st.out, zncc=st.zn, valid=valid, sigma_px=sigma,
                        reason=st.reason.astype(str), ref_view=st.ref, kind=np.full(n, "auto"),
-                       source_index=st.gidx, subset_px=st.side, params=st.params)
+                       source_index=st.gidx, subset_px=st.side, params=st.params,
+                       view_valid=vv, view_sigma_px=view_sig)
 
 
 def _epipolar_stage(ref_img, img, gw, M, e, start, pts_j, sig_j, rr_j, ok_j, r, half_window,

@@ -96,6 +96,18 @@ def _as_tilts(tilt_deg, n_views):
     return t
 
 
+def _check_view_mask(mask, th):
+    """Raise unless every point has at least two valid views of different tilts."""
+    sn = np.sin(th)
+    hi = np.max(np.where(mask, sn, -np.inf), axis=1)
+    lo = np.min(np.where(mask, sn, np.inf), axis=1)
+    bad = np.flatnonzero(~(hi - lo >= 1e-6))
+    if bad.size:
+        raise GeometryError(
+            f"{bad.size} point(s) (first: {bad[:5].tolist()}) have fewer than two valid views "
+            "of different tilts in view_valid; select them out first (MatchResult.seen_in)")
+
+
 def _check_not_collinear(xy, what="points"):
     """Raise if the ``(N, 2)`` image points are (nearly) on one line."""
     c = xy - xy.mean(axis=0)
@@ -246,7 +258,8 @@ class HeightResult:
     offsets_known: bool
 
 
-def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_px=None):
+def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_px=None,
+                       view_valid=None):
     """Linear least-squares 3D points from views at known stage tilts.
 
     For each point, ``(x, z)`` solve ``u_i - c_i = (x cos θ_i + z sin θ_i)/s`` over all views
@@ -277,6 +290,12 @@ def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_
     center_px : None, (2,) or (V, 2) array_like, optional
         Known tilt-axis pixel position ``(cx, cy)`` (all views or per view). None: unknown,
         estimated as described above.
+    view_valid : (N, V) bool array, optional
+        Which views of each point were matched (:attr:`semlab.matching.MatchResult.view_valid`):
+        each point is solved over its own valid views (at least two, of different tilts);
+        its other views' entries of ``pts`` are ignored (may be NaN). The unknown offsets
+        are estimated from the points valid in every view (at least two), so all points
+        share one gauge. None: every view of every point.
 
     Returns
     -------
@@ -288,10 +307,22 @@ def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_
     GeometryError
         Bad shapes, NaNs, fewer than 2 views or points, equal tilts, bad pixel size.
     """
+    mask = None
+    if view_valid is not None:
+        raw = np.asarray(pts, dtype=float)
+        mask = np.asarray(view_valid, bool)
+        if raw.ndim != 3 or mask.shape != raw.shape[:2]:
+            raise GeometryError(f"view_valid must be (N, V) like pts {raw.shape[:2]}, got "
+                                f"shape {mask.shape}")
+        pts = np.where(mask[..., None], raw, 0.0)
     p = _as_pts(pts, min_views=2, min_points=2)
     n, v = p.shape[:2]
     th = np.deg2rad(_as_tilts(tilt_deg, v))
     s = _check_pixel_size(pixel_size_um)
+    if mask is None:
+        mask = np.ones((n, v), bool)
+    _check_view_mask(mask, th)
+    full = mask.all(axis=1)
     known = center_px is not None
     if known:
         c = np.asarray(center_px, float)
@@ -310,12 +341,20 @@ def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_
         uc = u - c[:, 0:1]
         vc = vv - c[:, 1:2]
     else:
-        mu, mv = u.mean(axis=1, keepdims=True), vv.mean(axis=1, keepdims=True)
+        if full.sum() < 2:
+            raise GeometryError(f"only {int(full.sum())} point(s) are valid in every view: the "
+                                "per-view offsets need at least 2 (or give center_px)")
+        mu = u[:, full].mean(axis=1, keepdims=True)
+        mv = vv[:, full].mean(axis=1, keepdims=True)
         uc, vc = u - mu, vv - mv
-    xz, *_ = np.linalg.lstsq(a, uc, rcond=None)  # (2, N) in px
-    y = vc.mean(axis=0)
-    ru = uc - a @ xz
-    rv = vc - y
+    xz = np.zeros((2, n))
+    for pattern in np.unique(mask, axis=0):   # one least-squares solve per set of views
+        cols = np.flatnonzero((mask == pattern).all(axis=1))
+        xz[:, cols] = np.linalg.lstsq(a[pattern], uc[np.ix_(pattern, cols)], rcond=None)[0]
+    mt = mask.T
+    y = np.sum(np.where(mt, vc, 0.0), axis=0) / mt.sum(axis=0)
+    ru = np.where(mt, uc - a @ xz, 0.0)
+    rv = np.where(mt, vc - y, 0.0)
     if not known:
         # gauge: put x (and y) back at the mean-view position, mean z = 0
         x0 = float(np.mean(mu[:, 0] / np.cos(th)))
@@ -324,7 +363,7 @@ def heights_from_tilts(pts, tilt_deg, pixel_size_um, tilt_axis_deg=90.0, center_
         y = y + y0
         c = np.column_stack([mu[:, 0] - x0 * np.cos(th), mv[:, 0] - y0])
     xyz = np.column_stack([xz[0], y, xz[1]]) * s
-    resid = np.sqrt(np.mean(ru ** 2 + rv ** 2, axis=0))
+    resid = np.sqrt(np.sum(ru ** 2 + rv ** 2, axis=0) / mt.sum(axis=0))
     return HeightResult(xyz_um=xyz, residual_px=resid, tilt_deg=np.rad2deg(th),
                         offsets_px=c, offsets_known=known)
 

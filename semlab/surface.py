@@ -295,7 +295,8 @@ def height_sigma(sigma_px, tilt_deg, pixel_size_um):
     ----------
     sigma_px : float or array_like
         1σ error of the x pixel coordinate of the matches: a scalar (all points, all
-        views), ``(N,)`` (per point, same in every view) or ``(N, V)`` / ``(1, V)``.
+        views), ``(N,)`` (per point, same in every view) or ``(N, V)`` / ``(1, V)``;
+        ``inf`` for a view the point was not matched in (it does not count).
     tilt_deg : (V,) array_like
         Tilts, degrees.
     pixel_size_um : float
@@ -319,16 +320,21 @@ def height_sigma(sigma_px, tilt_deg, pixel_size_um):
     if sig.ndim != 2 or sig.shape[1] not in (1, v):
         raise GeometryError(
             f"sigma_px must be a scalar, (N,) or (N, {v}) pixels, got shape {np.shape(sigma_px)}")
-    if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
-        raise GeometryError("sigma_px must be positive and finite")
+    if np.any(np.isnan(sig)) or np.any(sig <= 0) or np.any(np.isneginf(sig)):
+        raise GeometryError("sigma_px must be positive (and finite, or +inf for a view a "
+                            "point was not matched in)")
     sig = np.broadcast_to(sig, (sig.shape[0], v))
     s = float(pixel_size_um)
     c, si = np.cos(th) / s, np.sin(th) / s
-    w = 1.0 / sig ** 2  # (N, V)
+    w = 1.0 / sig ** 2  # (N, V); 0 for a view not matched (σ = inf)
     m00 = w @ (c * c)
     m01 = w @ (c * si)
     m11 = w @ (si * si)
-    var_z = m00 / (m00 * m11 - m01 ** 2)
+    det = m00 * m11 - m01 ** 2
+    if np.any(~(det > 1e-12 * np.maximum(m00 * m11, 1e-300))):
+        raise GeometryError("sigma_px leaves a point with fewer than two views of different "
+                            "tilts (finite σ): its height is not defined")
+    var_z = m00 / det
     out = np.sqrt(var_z)
     return float(out[0]) if scalar else out
 

@@ -196,7 +196,8 @@ def _match_task(crops, params, features):
         r = auto_match(crops, params, progress=False, features=features)
     except GeometryError as exc:          # e.g. a featureless tile: its points stay invalid
         return str(exc)
-    return r.pts, r.zncc, r.valid, r.sigma_px, r.reason, r.subset_px
+    return r.pts, r.zncc, r.valid, r.sigma_px, r.reason, r.subset_px, r.views_valid(), \
+        r.view_sigma_px
 
 
 def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progress=True,
@@ -309,6 +310,8 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
     sigma = np.full(n, np.nan)
     reason = np.full(n, "not matched in its tile", dtype=object)
     side = np.zeros(n, int)
+    vv = np.zeros((n, v), bool)             # per view, as auto_match's view_valid
+    vsig = np.full((n, v), np.nan)
     with dask_client(scheduler) as client:
         for i, res in map_tiles(client, _match_task, jobs(), len(plans), "matching tiles",
                                 progress):
@@ -317,7 +320,7 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
                 reason[core_idx] = (f"tile x {tile.x0}:{tile.x1}, y {tile.y0}:{tile.y1}: "
                                     f"{res}")
                 continue
-            pts, z, ok, sg, why, sub = res
+            pts, z, ok, sg, why, sub, t_vv, t_vsig = res
             b = boxes[ref]
             col = np.rint((pts[:, ref, 0] + b[2] - margin) / s).astype(int)
             row = np.rint((pts[:, ref, 1] + b[0] - margin) / s).astype(int)
@@ -328,14 +331,18 @@ def tiled_auto_match(images, params=None, *, tiling=None, scheduler=None, progre
                 out[gidx, j] = pts[keep, j] + [bj[2], bj[0]]
             zn[gidx], valid[gidx], sigma[gidx] = z[keep], ok[keep], sg[keep]
             reason[gidx], side[gidx] = why[keep], sub[keep]
-    sigma[~valid] = np.nan
+            vv[gidx] = t_vv[keep]
+            if t_vsig is not None:
+                vsig[gidx] = t_vsig[keep]
+    sigma[~(vv[:, ref] & (vv.sum(1) >= 2))] = np.nan
     if progress:
         from tqdm.auto import tqdm
         tqdm.write(f"tiled auto_match: {valid.sum()} of {n} grid points accepted "
                    f"({len(plans)} tiles)")
     return MatchResult(pts=out, zncc=zn, valid=valid, sigma_px=sigma,
                        reason=reason.astype(str), ref_view=ref, kind=np.full(n, "auto"),
-                       source_index=np.arange(n), subset_px=side, params=p)
+                       source_index=np.arange(n), subset_px=side, params=p,
+                       view_valid=vv, view_sigma_px=vsig)
 
 
 def run_auto_match(images, *, tiling=None, progress=True, **kw):

@@ -561,3 +561,58 @@ def test_click_on_flat_background_beside_an_edge_is_flagged():
     r0 = refine_correspondences(ims, clicks, max_info_offset=None)
     err0 = np.abs(r0.pts[bg, 1, 0] - u1[bg])
     assert np.any(r0.valid[bg] & (err0 > 5 * r0.sigma_px[bg]))
+
+
+def test_points_seen_in_fewer_views_keep_their_valid_views():
+    """A region of one view that cannot be matched (here replaced by an unrelated texture:
+    occluded, charged) loses only that view: its points keep the views they matched in,
+    and their heights from those views are as accurate as the others'."""
+    from semlab.reconstruct import heights_from_tilts
+
+    sc = Scene(seed=2)
+    tilts = (-5.0, 0.0, 5.0)
+    ims = [sc.render(t, seed=k) for k, t in enumerate(tilts)]
+    w = ims[2].shape[1]
+    ims[2][:, : w // 3] = Scene(seed=9).render(5.0, seed=7)[:, : w // 3]
+    a = auto_match(ims, spacing_px=10, progress=False, band_aware=False)
+    vv = a.views_valid()
+    left = a.pts[:, 0, 0] < w // 3 - 30
+    assert vv[left, 1].mean() > 0.7           # view 1 still matches there ...
+    assert vv[left, 2].mean() < 0.05          # ... view 2 does not
+    assert not a.valid[left].any()
+    right = a.pts[:, 0, 0] > w // 3 + 30
+    assert a.valid[right].mean() > 0.5
+    s = a.seen_in(2)
+    assert (s.views_valid().sum(1) >= 2).all() and len(s) > a.valid.sum() + 50
+    assert np.all(np.isfinite(s.sigma_px)) and np.all(np.isnan(s.view_sigma_px[~s.view_valid]))
+    hz = heights_from_tilts(s.pts, tilts, S_UM, view_valid=s.view_valid)
+    x, y = sc.material(s.pts[:, 0, 0], s.pts[:, 0, 1], tilts[0])
+    err = hz.xyz_um[:, 2] - sc.z(x, y)
+    err -= np.median(err)
+    part = ~s.views_valid().all(1)
+    assert part.sum() > 50
+    assert np.sqrt(np.mean(err[part] ** 2)) < 2 * np.sqrt(np.mean(err[~part] ** 2)) + 0.002
+    with pytest.raises(SemlabError, match="min_views"):
+        a.seen_in(4)
+
+
+def test_points_seen_in_three_of_four_views_pass_the_multiview_test():
+    """A patch of one view displaced as a whole (a wrong texture period, consistent with its
+    neighbours, so only the tilt-series model sees it) is rejected in the points that lack
+    another view too: the rank-2 test fitted on the complete points also tests the points
+    valid in three views."""
+    sc = Scene(seed=2)
+    tilts = (-6.0, -2.0, 2.0, 6.0)
+    ims = [sc.render(t, seed=k) for k, t in enumerate(tilts)]
+    h, w = ims[0].shape
+    ims[3][:, : w // 2] = Scene(seed=9).render(6.0, seed=7)[:, : w // 2]
+    patch = (slice(50, 150), slice(30, 120))
+    ims[2][patch] = np.roll(ims[2], 3, axis=1)[patch]        # 3 px off in view 2
+    a = auto_match(ims, spacing_px=8, progress=False, band_aware=False)
+    vv = a.views_valid()
+    x, y = a.pts[:, 0, 0], a.pts[:, 0, 1]
+    inside = (x > 30 + 15) & (x < 120 - 15) & (y > 50 + 15) & (y < 150 - 15)
+    assert inside.sum() > 40 and not vv[inside, 3].any()
+    assert not (vv[inside, 2] & vv[inside, 1]).any()         # no 3-view point with view 2
+    outside = (x > 30 + 15) & (x < w // 2 - 30) & ((y < 50 - 15) | (y > 150 + 15))
+    assert (vv[outside, 1] & vv[outside, 2]).mean() > 0.5    # ... where view 2 is right

@@ -544,3 +544,33 @@ def test_real_pollen_substrate_x_scale_checks_the_tilts():
         check_tilts(m.pts, (0.0, 3.0), sigma_px=sig, region=sub)
     chk = check_tilts(m.pts, (-20.2, -17.0), sigma_px=sig, region=sub)
     assert chk.consistent and abs(chk.pretilt_deg) < 3.0
+
+
+def test_heights_from_tilts_with_view_valid_solve_each_point_over_its_views():
+    """Points missing a view: the same heights (up to the common gauge constant) as with
+    every view, exactly for exact projections; the missing entries may be NaN."""
+    rng = np.random.default_rng(4)
+    tilts = np.array([-6.0, -2.0, 2.0, 6.0])
+    th = np.deg2rad(tilts)
+    s = 0.05
+    xyz = np.column_stack([rng.uniform(-10, 10, 60), rng.uniform(-8, 8, 60),
+                           rng.uniform(-1, 1, 60)])
+    pts = np.stack([np.column_stack([(xyz[:, 0] * np.cos(t) + xyz[:, 2] * np.sin(t)) / s + 300,
+                                     xyz[:, 1] / s + 200]) for t in th], axis=1)
+    mask = np.ones((60, 4), bool)
+    mask[:20, 3] = False
+    mask[20:30, 1:3] = False
+    holed = np.where(mask[..., None], pts, np.nan)
+    full = heights_from_tilts(pts, tilts, s)
+    part = heights_from_tilts(holed, tilts, s, view_valid=mask)
+    dz = part.xyz_um[:, 2] - full.xyz_um[:, 2]
+    assert np.ptp(dz) < 1e-9 and np.ptp(part.xyz_um[:, 0] - full.xyz_um[:, 0]) < 1e-9
+    assert np.allclose(part.xyz_um[:, 1], full.xyz_um[:, 1]) and part.residual_px.max() < 1e-9
+    same = heights_from_tilts(pts, tilts, s, view_valid=np.ones((60, 4), bool))
+    assert np.array_equal(same.xyz_um, full.xyz_um)
+    one = mask.copy()
+    one[0, :3] = False                        # a point left with a single view
+    with pytest.raises(GeometryError, match="fewer than two valid views"):
+        heights_from_tilts(holed, tilts, s, view_valid=one)
+    with pytest.raises(GeometryError, match="valid in every view"):
+        heights_from_tilts(pts, tilts, s, view_valid=np.tile([True, True, True, False], (60, 1)))

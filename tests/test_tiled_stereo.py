@@ -50,7 +50,7 @@ def test_tiled_auto_match_equals_untiled(pair):
     a2 = auto_match([ref, cur], progress=False, band_aware=False, **kw)
     b2 = tiled_auto_match([ref, cur], tiling=TilingParams(tile_px=128, halo_px=48),
                           progress=False, band_aware=False, **kw)
-    assert np.array_equal(a2.valid, b2.valid)
+    assert np.array_equal(a2.valid, b2.valid) and np.array_equal(a2.view_valid, b2.view_valid)
     ok = a2.valid
     assert np.abs(a2.pts[ok, 1] - b2.pts[ok, 1]).max() < 1e-3
     assert np.array_equal(a2.subset_px, b2.subset_px)
