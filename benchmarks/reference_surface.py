@@ -28,6 +28,14 @@ Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen
    2σ below, dropped); the x-scale tilt check (semlab.tiltcheck.check_tilts); the groove
    relief: RMS height difference of substrate points 6–12 px apart across the grooves
    (along x) against along them (along y, noise only).
+   Then the points valid in the reference and at least one other view
+   (``MatchResult.seen_in(2)``; heights from their own views at the same levelled tilts,
+   ``heights_from_tilts(..., view_valid=...)``): coverage with 2, 3 and 4 views, and their
+   error bars without truth: for points valid in three views ``(r, a, b)`` the heights from
+   ``(r, a)`` and ``(r, b)`` alone (independent errors: the reference positions are the
+   exact grid) against their predicted σ, the same check on the all-view points for
+   comparison, and, for every group (two-view points included, which no pair can check),
+   the substrate heights above the reference in units of their σ.
 """
 
 from __future__ import annotations
@@ -123,6 +131,73 @@ def _pair_heights(P, tilt, pairs, sig_px, ref_view):
         zs.append(np.sqrt(sa ** 2 * cb ** 2 + sb ** 2 * ca ** 2)
                   / abs(np.sin(np.deg2rad(th[1] - th[0]))))
     return np.column_stack(z), np.column_stack(zs)
+
+
+def _robust_sd(u):
+    return float(1.4826 * np.median(np.abs(u - np.median(u))))
+
+
+def _fewer_views(m, tilt, ref, ref_view):
+    """Points valid in the reference and at least one other view (``MatchResult.seen_in``):
+    coverage, and their error bars checked without truth. Pairs sharing only the reference
+    view (exact grid positions) have independent errors: for points valid in three views
+    ``(r, a, b)`` the heights from ``(r, a)`` and ``(r, b)`` alone differ by their noise
+    (after the median and a plane of the difference, per region, are removed). Points valid
+    in two views cannot be checked so; for them, and the others, the substrate's heights
+    above the reference plane in units of their σ (grooves included, so above 1 for all)
+    compare the groups."""
+    s = m.seen_in(2)
+    s = s.select(np.isfinite(s.sigma_px) & (s.sigma_px > 0))   # as above: a finite σ
+    vv = s.views_valid()
+    nv = vv.sum(1)
+    r_all = _ellipse_r(m.pts[:, ref_view])
+    seen_all = m.views_valid()[:, ref_view] & (m.views_valid().sum(1) >= 2)
+    nv_all = np.where(seen_all, m.views_valid().sum(1), 0)
+    print("\n#### Points valid in fewer views (`MatchResult.seen_in(2)`: the reference and at "
+          "least one other view)\n")
+    print("| region | grid points | valid in ≥ 2 views | ≥ 3 views | all 4 views |")
+    print("|---|---|---|---|---|")
+    for name, sel in (("grain", r_all < 1.0), ("substrate", r_all > SUBSTRATE_R)):
+        c = [int(np.sum(sel & (nv_all >= k))) for k in (2, 3, 4)]
+        print(f"| {name} | {sel.sum()} | " + " | ".join(
+            f"{k} ({k / sel.sum():.1%})" for k in c) + " |")
+    sig = np.where(vv, np.clip(s.sigma_px, 1e-3, None)[:, None], np.inf)
+    P = s.pts
+    xyz = heights_from_tilts(P, tilt, 1.0, view_valid=vv).xyz_um
+    zs = height_sigma(sig, tilt, 1.0)
+    z = ref.heights(xyz)
+    rr = _ellipse_r(P[:, ref_view])
+    print("\n| check | region | points | robust SD / predicted σ | within 1σ | within 2σ |")
+    print("|---|---|---|---|---|---|")
+    others = [j for j in range(m.n_views) if j != ref_view]
+    for k_views, label in ((3, "valid in 3 views"), (4, "valid in all 4 (same check)")):
+        for name, reg in (("grain", rr < 1.0), ("substrate", rr > SUBSTRATE_R)):
+            us = []
+            for ia, a in enumerate(others):
+                for b in others[ia + 1:]:
+                    sel = reg & (nv == k_views) & vv[:, a] & vv[:, b]
+                    if sel.sum() < 10:
+                        continue
+                    zab, zsab = _pair_heights(P[sel], tilt, ((ref_view, a), (ref_view, b)),
+                                              s.sigma_px[sel], ref_view)
+                    dd = zab[:, 0] - zab[:, 1]
+                    xy1 = np.column_stack([P[sel, ref_view], np.ones(sel.sum())])
+                    dd = dd - np.median(dd)
+                    dd = dd - xy1 @ np.linalg.lstsq(xy1, dd, rcond=None)[0]
+                    us.append(dd / np.hypot(zsab[:, 0], zsab[:, 1]))
+            if not us:
+                continue
+            u = np.concatenate(us)
+            print(f"| (r, a) − (r, b), {label} | {name} | {len(u)} | {_robust_sd(u):.2f} | "
+                  f"{np.mean(np.abs(u) <= 1):.0%} | {np.mean(np.abs(u) <= 2):.0%} |")
+    for k_views in (2, 3, 4):
+        sel = (rr > SUBSTRATE_R) & (nv == k_views)
+        if sel.sum() < 10:
+            continue
+        u = (z[sel] - np.median(z[sel])) / zs[sel]
+        print(f"| substrate height above the reference / σ, valid in {k_views} views | "
+              f"substrate | {sel.sum()} | {_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
+              f"{np.mean(np.abs(u) <= 2):.0%} |")
 
 
 def _plane_left(q, sig):
@@ -266,6 +341,7 @@ def pollen():
           f"along the grooves (y) {ry:.2f} px, across them (x) {rx:.2f} px, i.e. a groove "
           f"relief of {relief:.2f} px RMS beyond the noise ({along_y.sum()} / {along_x.sum()} "
           f"pairs); median height σ of the substrate points {np.median(zs_sub):.2f} px")
+    _fewer_views(m, tilt, ref, ref_view)
     if FIGURE:
         import matplotlib
 

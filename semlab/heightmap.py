@@ -749,9 +749,11 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     if exp.stereo.camera == "perspective":
         notes.append("camera = perspective: the map uses a linear (affine) height model "
                      "fitted to the triangulated points")
+    # points matched in views 0 and 1 (with 3+ views some are seen in fewer views)
+    pair = np.all(np.isfinite(np.asarray(stereo.pts, float)[:, :2]), axis=(1, 2))
     try:
-        model = height_model_from_points(stereo.pts[:, :2], stereo.z_um)
-        notes.append(f"height model fitted to {len(stereo.pts)} points, residual "
+        model = height_model_from_points(stereo.pts[pair, :2], stereo.z_um[pair])
+        notes.append(f"height model fitted to {pair.sum()} points, residual "
                      f"{model.rms_um * 1e3:.2g} nm")
     except GeometryError:
         # too few points to fit: the tilts' closed form, above the plane z = 0 of the
@@ -771,7 +773,7 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     noise, how = stereo_noise_sigma(views[0], views[1], stereo)
     cal = {"noise_sigma": noise}
     notes.append(f"image noise σ {noise[0]:.4g}, {noise[1]:.4g} (grey levels) {how}")
-    seeds = stereo.pts[:, :2]
+    seeds = stereo.pts[pair, :2]
     if t.tiles_map(np.shape(views[0]), roi):
         par = tiled_parallax(views[0], views[1], seeds=seeds, roi=roi, params=params,
                              method=method, calibration=cal, tiling=t, scheduler=scheduler,
@@ -815,6 +817,7 @@ def stereo_noise_sigma(view0, view1, stereo):
     if rec is not None and len(rec) >= 2 and np.all(np.isfinite(np.asarray(rec[:2], float))):
         return (float(rec[0]), float(rec[1])), "recorded by the stereo step"
     pts = np.asarray(stereo.pts, float)
+    pts = pts[np.all(np.isfinite(pts[:, :2]), axis=(1, 2))]   # matched in views 0 and 1
     noise = calibrated_noise_sigma(view0, view1, pts[:, 0], pts[:, 1])
     return noise, (f"calibrated on the {len(pts)} stereo matches "
                    "(semlab.noise.calibrated_noise_sigma)")

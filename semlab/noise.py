@@ -151,9 +151,9 @@ MIN_NOISE_SEEDS = 10     # fewer seeds: the dense method measures the noise on i
 def with_seed_noise(calibration, view0, view1, seeds):
     """A dense map's calibration with the image noise measured at its seeds.
 
-    The calibration's own ``"noise_sigma"`` wins (e.g. recorded by the stereo step's
-    matcher); otherwise, with at least ``MIN_NOISE_SEEDS`` seeds, it is
-    :func:`calibrated_noise_sigma` at them; with fewer it stays unset (the dense method then
+    The calibration's own ``"noise_sigma"`` wins (e.g. measured at the stereo matches by
+    :func:`semlab.heightmap.stereo_noise_sigma`, or given by the caller); otherwise, with at
+    least ``MIN_NOISE_SEEDS`` seeds, it is :func:`calibrated_noise_sigma` at them; with fewer it stays unset (the dense method then
     calibrates on its own subsets, ``icgn_refine``'s default).
 
     Parameters

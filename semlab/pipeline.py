@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ._api import strict_keywords
 from .errors import GeometryError, SemlabError, SemlabWarning
@@ -65,6 +66,12 @@ class StereoResult:
     notes : list of str
     reference : semlab.surface.ReferenceSurface or None
         The plane the heights are measured from (method, inliers, residual).
+    n_views : (N,) int or None
+        Views each point was matched in. With 3 or more views, automatic points matched in
+        the reference view and at least one other but not in all come after the others:
+        ``pts`` is NaN in their other views, their heights come from their own views at the
+        tilts, offsets and reference surface of the complete points
+        (:func:`fewer_view_heights`), and their ``z_err_um`` is the matching σ only.
     """
 
     point_id: np.ndarray
@@ -82,11 +89,16 @@ class StereoResult:
     method: str
     notes: list = field(default_factory=list)
     reference: object = None
+    n_views: np.ndarray = None
 
     @property
     def z_um(self):
         """Heights above the reference plane, µm."""
         return self.xyz_um[:, 2]
+
+    def in_views(self, *views):
+        """(N,) bool: the points matched in all of ``views`` (``pts`` finite there)."""
+        return np.all(np.isfinite(self.pts[:, list(views)]), axis=(1, 2))
 
 
 def _jsonable(obj):
@@ -107,7 +119,8 @@ def _jsonable(obj):
 
 # ------------------------------------------------------------------------------ stereo steps
 @strict_keywords
-def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None, auto_kw=None):
+def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None, auto_kw=None,
+                with_partial=False):
     """Correspondences between the views by the chosen method.
 
     Parameters
@@ -119,6 +132,11 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
         ``raw``: the clicks as they are (the reference paper's method); ``refined``: clicks
         refined by sub-pixel matching; ``auto``: automatic matching only; ``merged``:
         refined clicks plus automatic points.
+
+    with_partial : bool
+        Also return, as a fifth item, the automatic points valid in the reference view and
+        at least one other but not in all (a :class:`semlab.matching.MatchResult`, those
+        within 3 px of a returned point left out; None without automatic matching).
 
     Returns
     -------
@@ -151,8 +169,10 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
                           "has none (add [stereo] correspondences, or use method='auto')")
     if method == "raw":
         n = len(clicks)
-        return clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n)
+        out = clicks.copy(), np.array(["click"] * n), np.full(n, np.nan), np.arange(n)
+        return out + (None,) if with_partial else out
     parts = []
+    partial = None
     if method in ("refined", "merged") and clicks is not None:
         r = matching.refine_correspondences(views, clicks, **(refine_kw or {}))
         ok = np.asarray(r.valid)
@@ -166,6 +186,9 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
         a = run_auto_match(views, progress=progress, **(auto_kw or {}))
         ok = np.asarray(a.valid)
         apts = a.pts[ok]
+        if with_partial:
+            partial = a.seen_in(2)
+            partial = partial.select(~partial.valid)
         if parts:  # drop automatic points that duplicate a clicked one
             cp = parts[0][0][:, 0]
             if len(cp):
@@ -187,7 +210,55 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     if len(pts) < 4:
         raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; add "
                             "clicks or use automatic matching")
-    return pts, kind, sig, idx
+    if not with_partial:
+        return pts, kind, sig, idx
+    if partial is not None and len(partial):
+        near = cKDTree(pts[:, 0]).query(partial.pts[:, partial.ref_view])[0] <= 3.0
+        partial = partial.select(~near & np.isfinite(partial.sigma_px))
+    return pts, kind, sig, idx, partial
+
+
+def fewer_view_heights(pts, partial, tilt_deg, pixel_size_um, tilt_axis_deg, reference):
+    """Heights of points matched in fewer views, in the frame of the complete points.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        The complete points (every view), as the heights of the run were computed from.
+    partial : semlab.matching.MatchResult
+        Points valid in the reference view and at least one other (``view_valid``).
+    tilt_deg, pixel_size_um, tilt_axis_deg
+        As the run's heights used.
+    reference : semlab.surface.ReferenceSurface
+        The run's reference surface.
+
+    Returns
+    -------
+    pts (P, V, 2) with NaN in the views a point is not valid in, xyz_um (P, 3) with z
+    above the reference, z_err_um (P,) (matching σ of its own views through the tilts,
+    :func:`semlab.surface.height_sigma`), sigma_px (P,), n_views (P,)
+
+    The complete points fix the per-view offsets (the gauge), so each partial point is
+    solved over its own views with the same offsets
+    (:func:`semlab.reconstruct.heights_from_tilts` with ``view_valid``).
+    """
+    from . import reconstruct, surface
+
+    vv = partial.views_valid()
+    pp = np.where(vv[..., None], partial.pts, np.nan)
+    both = np.concatenate([pts, pp])
+    mask = np.concatenate([np.ones(pts.shape[:2], bool), vv])
+    hr = reconstruct.heights_from_tilts(both, tilt_deg, pixel_size_um,
+                                        tilt_axis_deg=tilt_axis_deg, view_valid=mask)
+    xyz3 = hr.xyz_um[len(pts):]
+    xyz = np.column_stack([xyz3[:, :2], reference.heights(xyz3)])
+    ref = partial.ref_view
+    sv = partial.view_sigma_px if partial.view_sigma_px is not None else \
+        np.where(vv, partial.sigma_px[:, None], np.nan)
+    sv = np.where(vv, np.clip(np.nan_to_num(sv, nan=np.inf), 1e-4, None), np.inf)
+    sv[:, ref] = 1e-3 * np.clip(partial.sigma_px, 1e-4, None)      # as view_sigmas
+    z_err = surface.height_sigma(sv, tilt_deg, pixel_size_um)
+    return pp, xyz, np.asarray(z_err, float), partial.sigma_px.astype(float), vv.sum(1)
 
 
 @dataclass
@@ -506,8 +577,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                           "correspondences file has only its header; add points, or use "
                           "method='auto'")
     method = method or ("merged" if clicks is not None else "auto")
-    pts, kind, sigma_px, idx = match_views(views, clicks, method, progress=progress,
-                                           refine_kw=refine_kw, auto_kw=auto_kw)
+    pts, kind, sigma_px, idx, partial = match_views(
+        views, clicks, method, progress=progress, refine_kw=refine_kw, auto_kw=auto_kw,
+        with_partial=True)
     notes = []
     calib = {"pixel_size_um": exp.pixel_size_um, "pixel_size_source": exp.pixel_size_source,
              "camera": exp.stereo.camera, "method": method, "n_points": int(len(pts))}
@@ -582,6 +654,18 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
     z = ref.heights(xyz_3d)
     xyz = np.column_stack([xyz_3d[:, :2], z])
+    n_views = np.full(len(pts), pts.shape[1])
+    if partial is not None and len(partial) and exp.stereo.camera != "perspective":
+        pp, xyz_p, zerr_p, sig_p, nv_p = fewer_view_heights(pts, partial, tilt,
+                                                             exp.pixel_size_um, axis_used, ref)
+        pts, xyz = np.concatenate([pts, pp]), np.concatenate([xyz, xyz_p])
+        z_err, sigma_px = np.concatenate([z_err, zerr_p]), np.concatenate([sigma_px, sig_p])
+        kind = np.concatenate([kind, np.full(len(pp), "auto")])
+        idx, n_views = np.concatenate([idx, np.full(len(pp), -1)]), np.concatenate([n_views,
+                                                                                      nv_p])
+        notes.append(f"{len(pp)} automatic points matched in the reference view and at least "
+                     f"one other but not in all {pts.shape[1]}: heights from their own views "
+                     "(z_err_um: matching σ only, no bootstrap)")
     calib.update(tilt_deg=tilt, tilt_source=tilt_source, tilt_sigma_deg=tilt_sigma,
                  tilt_axis_deg=axis_used, reference_plane=np.asarray(ref.plane),
                  reference_surface=ref.to_dict())
@@ -596,11 +680,17 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
             crack[clicked] = np.asarray(corr.crack_id)[idx[clicked]]
         start = int(np.max(corr.point_id)) + 1 if len(corr.point_id) else 0
     point_id[~clicked] = start + np.arange((~clicked).sum())
+    few = n_views < pts.shape[1]
+    if few.any():   # they come last: point_id from first_point_id on
+        calib["fewer_views"] = {
+            "n_points": int(few.sum()), "first_point_id": int(point_id[few][0]),
+            "n_views": {str(k): int(np.sum(n_views == k)) for k in range(2, pts.shape[1])},
+            "z_err_um": "matching σ of the point's own views only (no bootstrap)"}
     return StereoResult(point_id=point_id.astype(int), pts=pts, kind=kind, crack_id=crack.astype(int),
                         xyz_um=xyz, z_err_um=z_err, sigma_px=sigma_px, tilt_deg=np.asarray(tilt),
                         tilt_source=tilt_source, tilt_sigma_deg=np.asarray(tilt_sigma),
                         tilt_axis_deg=axis_used, calibration=calib, method=method, notes=notes,
-                        reference=ref)
+                        reference=ref, n_views=n_views)
 
 
 def write_stereo_results(result, out_dir, overwrite=False):

@@ -52,6 +52,8 @@ def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels
         ax.plot(p[:, 0], p[:, 1], "+", color=kw.get("color", "tab:orange"), ms=7, mew=1.2)
         if labels is not None:
             for (x, y), lab in zip(p, labels):
+                if not (np.isfinite(x) and np.isfinite(y)):   # not matched in this view
+                    continue
                 ax.annotate(str(lab), (x, y), xytext=(3, 3), textcoords="offset points",
                             color=kw.get("color", "tab:orange"), fontsize=7)
     if pixel_size_um:

@@ -27,7 +27,8 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     assert np.abs(rel - (tilts - tilts[1])).max() < 0.1
     assert np.all(np.asarray(res.tilt_sigma_deg) < 0.1)
     zt = validation.true_height_at(exp.truth_dir, res.pts[:, 0])
-    err = validation.height_errors(res.z_um, zt, res.xyz_um[:, :2])
+    full = res.n_views == 3               # the points matched in fewer views have larger σ
+    err = validation.height_errors(res.z_um[full], zt[full], res.xyz_um[full, :2])
     assert err["n"] >= 1000 and err["rmse_um"] < 0.010
     # the automatic matcher's one parameter object is recorded
     assert res.calibration["auto_match_params"]["spacing_px"] == 8
@@ -167,3 +168,39 @@ def test_reference_region_recorded_in_calibration(tmp_path):
     rr = res_r.calibration["reference_surface"]
     assert rr["method"] == "region" and rr["rectangle_px"] == [0.0, 0.0, 100.0, 160.0]
     assert rr["n_in_region"] == int(np.sum(res_r.pts[:, 0, 0] <= 100)) >= rr["n_inliers"]
+
+
+def test_points_seen_in_fewer_views_get_heights_in_the_same_frame(tmp_path, monkeypatch):
+    """Three views, the left third of view 2 unusable (replaced by an unrelated texture):
+    the automatic points there are kept with views 0 and 1, their heights in the frame of
+    the complete points (same offsets, same reference plane) and as accurate."""
+    from scipy import ndimage
+
+    tilts = (-5.0, 0.0, 5.0)
+    exp = _make(tmp_path, seed=0, tilts_deg=tilts, write_block=False)
+    ims = exp.views()
+    w = ims[2].shape[1]
+    noise = ndimage.gaussian_filter(np.random.default_rng(5).normal(size=ims[2].shape), 1.5)
+    left_img = ims[2][:, : w // 3]
+    ims[2][:, : w // 3] = left_img.mean() + noise[:, : w // 3] / noise.std() * left_img.std()
+    monkeypatch.setattr(type(exp), "views", lambda self: [im.copy() for im in ims])
+    res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False)
+    few = res.n_views < 3
+    left = res.pts[:, 0, 0] < w // 3 - 30
+    assert few.sum() > 100 and few[left].mean() > 0.9
+    fl = few & left
+    assert np.isnan(res.pts[fl, 2]).all() and res.in_views(0, 1)[fl].all()
+    assert np.array_equal(np.isfinite(res.pts[..., 0]).sum(1), res.n_views)
+    fv = res.calibration["fewer_views"]
+    assert fv["n_points"] == few.sum() and (res.point_id[few] >= fv["first_point_id"]).all()
+    assert (res.point_id[~few] < fv["first_point_id"]).all()
+    assert np.all(np.isfinite(res.z_err_um)) and np.all(res.z_err_um > 0)
+    zt = validation.true_height_at(exp.truth_dir, res.pts[:, 0])
+    e = res.z_um - zt
+    a = np.column_stack([res.xyz_um[:, :2], np.ones(len(e))])
+    e = e - a @ np.linalg.lstsq(a[~few], e[~few], rcond=None)[0]   # the complete points' plane
+    u = e / res.z_err_um                  # errors in units of each point's own 1σ
+    assert abs(np.median(e[few])) < 0.3 * np.median(res.z_err_um[few])     # same frame
+    rms_few, rms_all = (float(np.sqrt(np.mean(u[s] ** 2))) for s in (few, ~few))
+    assert rms_few < 1.3 * rms_all        # as accurate, relative to their (larger) σ
+    assert np.mean(np.abs(u[few]) <= 2) > 0.9
