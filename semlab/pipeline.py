@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -663,6 +663,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         kind = np.concatenate([kind, np.full(len(pp), "auto")])
         idx, n_views = np.concatenate([idx, np.full(len(pp), -1)]), np.concatenate([n_views,
                                                                                       nv_p])
+        # the reference surface was chosen among the complete points: the others are not
+        # its inliers (its arrays follow the points)
+        ref = replace(ref, inliers=np.concatenate([ref.inliers, np.zeros(len(pp), bool)]))
         notes.append(f"{len(pp)} automatic points matched in the reference view and at least "
                      f"one other but not in all {pts.shape[1]}: heights from their own views "
                      "(z_err_um: matching σ only, no bootstrap)")
