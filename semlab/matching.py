@@ -633,10 +633,10 @@ def _filter_consistency(st):
     p, grid = st.params, st.grid
     for _ in range(2 if p.consistency_px is not None else 0):
         for j, (pa, pe) in st.resid.items():
+            idx = st.alive(j)
+            if len(idx) < 4:
+                continue
             for name, val in (("parallax", pa), ("cross-parallax", pe)):
-                idx = st.alive(j)
-                if len(idx) < 4:
-                    continue
                 out_l = _local_outliers(grid[idx], val[idx], 8, p.consistency_px)
                 st.fail(idx[out_l], j, f"{name} inconsistent with its neighbours")
 
