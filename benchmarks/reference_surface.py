@@ -137,7 +137,7 @@ def _robust_sd(u):
     return float(1.4826 * np.median(np.abs(u - np.median(u))))
 
 
-def _fewer_views(m, tilt, ref, ref_view):
+def _fewer_views(m, tilt, ref, ref_view, ref_index):
     """Points valid in the reference and at least one other view (``MatchResult.seen_in``):
     coverage, and their error bars checked without truth. Pairs sharing only the reference
     view (exact grid positions) have independent errors: for points valid in three views
@@ -145,7 +145,10 @@ def _fewer_views(m, tilt, ref, ref_view):
     (after the median and a plane of the difference, per region, are removed). Points valid
     in two views cannot be checked so; for them, and the others, the substrate's heights
     above the reference plane in units of their σ (grooves included, so above 1 for all)
-    compare the groups."""
+    compare the groups. ``ref_index``: grid indices (``source_index``) of the points the
+    reference was chosen among, in the order of ``ref.inliers``. Returns the view-0 pixels,
+    heights above the reference and reference-inlier flags of all these points (the
+    figure)."""
     s = m.seen_in(2)
     s = s.select(np.isfinite(s.sigma_px) & (s.sigma_px > 0))   # as above: a finite σ
     vv = s.views_valid()
@@ -198,6 +201,7 @@ def _fewer_views(m, tilt, ref, ref_view):
         print(f"| substrate height above the reference / σ, valid in {k_views} views | "
               f"substrate | {sel.sum()} | {_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
               f"{np.mean(np.abs(u) <= 2):.0%} |")
+    return P[:, ref_view], z, np.isin(s.source_index, np.asarray(ref_index)[ref.inliers])
 
 
 def _plane_left(q, sig):
@@ -341,16 +345,16 @@ def pollen():
           f"along the grooves (y) {ry:.2f} px, across them (x) {rx:.2f} px, i.e. a groove "
           f"relief of {relief:.2f} px RMS beyond the noise ({along_y.sum()} / {along_x.sum()} "
           f"pairs); median height σ of the substrate points {np.median(zs_sub):.2f} px")
-    _fewer_views(m, tilt, ref, ref_view)
+    xy_seen, z_seen, inl_seen = _fewer_views(m, tilt, ref, ref_view, v.source_index)
     if FIGURE:
         import matplotlib
 
         matplotlib.use("Agg")
         from semlab.plots import show_reference_surface
 
-        ax = show_reference_surface(ims[ref_view], P[:, ref_view], z, ref.inliers, unit="px",
+        ax = show_reference_surface(ims[ref_view], xy_seen, z_seen, inl_seen, unit="px",
                                     lim=8.0, title="pollen_pot1: heights above the "
-                                    "dominant flat surface")
+                                    "dominant flat surface (points valid in 2+ views)")
         FIGURE.parent.mkdir(parents=True, exist_ok=True)
         ax.figure.savefig(FIGURE, dpi=80, bbox_inches="tight")
         print(f"\nfigure: {FIGURE.relative_to(ROOT)}")
