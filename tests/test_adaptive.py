@@ -7,7 +7,7 @@ from semlab.adaptive import TARGET_MISSED, adaptive_icgn
 from semlab.errors import SemlabError
 from semlab.subset import icgn_refine
 
-from test_subset import _grid, _render, _texture
+from test_subset import _grid, _render, _sinusoid_pair, _texture
 
 
 def _scene(contrast_left=0.12, shift=(0.35, -0.25), shape=(140, 220), noise=2.0, seed=0):
@@ -123,17 +123,8 @@ def test_curvature_aware_sizing_on_a_sinusoidal_displacement():
     the largest subset) is worse than sizing by noise and curvature, which keeps subsets
     smaller at the crests than at the zero crossings, where the displacement is straight.
     (Fixed subsets: RMS 0.034 / 0.021 / 0.027 / 0.049 px at h = 6 / 9 / 13 / 19.)"""
-    T = _texture(4, kmax=0.6)
-    shape, amp, period = (110, 240), 0.2, 80.0
-    rng = np.random.default_rng(2)
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
-
-    def u(x):
-        return amp * np.sin(2 * np.pi * x / period)
-
-    X = xx - u(xx - u(xx - u(xx)))            # x = X + u(X), fixed point (error ~1e-5 px)
-    ref = T(xx, yy) + rng.normal(0, 3, shape)
-    cur = T(X, yy) + rng.normal(0, 3, shape)
+    shape, period = (110, 240), 80.0
+    ref, cur, u, _ = _sinusoid_pair(shape, 0.2, period, 3)
     pts = _grid(shape, 30, 6)
     kw = dict(target_sigma_px=0.002, half_windows=(6, 9, 13, 19), warp="affine",
               smooth_sigma_px=0.8, noise_sigma="calibrated")
@@ -202,17 +193,8 @@ def test_error_bar_holds_the_curvature_bias_the_ladder_leaves_unknown():
     the de-biased estimate (``bias_px``) is mostly 0 and its error bars cover too little
     (52 % / 86 % within 1σ / 2σ when written); the expected squared bias
     (``bias_rms_px``) covers as a 1σ should (73 % / 97 %), the same matches."""
-    T = _texture(4, kmax=0.6)
-    shape, amp, period = (120, 400), 0.3, 160.0
-    rng = np.random.default_rng(2)
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
-
-    def u(x):
-        return amp * np.sin(2 * np.pi * x / period)
-
-    X = xx - u(xx - u(xx - u(xx)))
-    ref = T(xx, yy) + rng.normal(0, 6, shape)
-    cur = T(X, yy) + rng.normal(0, 6, shape)
+    shape = (120, 400)
+    ref, cur, u, _ = _sinusoid_pair(shape, 0.3, 160.0, 6)
     pts = _grid(shape, 30, 5)
     a = adaptive_icgn(ref, cur, pts, pts, 0.02, half_windows=(7, 10, 14, 20, 28),
                       warp="affine", smooth_sigma_px=0.8, noise_sigma="calibrated",

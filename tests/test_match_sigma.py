@@ -136,18 +136,11 @@ def test_refined_clicks_carry_the_expected_ladder_bias():
     estimate and cover 2σ as they should (97 % / 93 % when written), the same matches."""
     from semlab.errors import SemlabError
     from semlab.refine import refine_correspondences
-    from test_subset import _grid as grid, _texture
+    from test_subset import _grid as grid, _sinusoid_pair
 
-    T = _texture(4, kmax=0.6)
-    shape, amp, period = (120, 400), 0.3, 160.0
-    rng = np.random.default_rng(2)
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
-
-    def u(x):
-        return amp * np.sin(2 * np.pi * x / period)
-
-    X = xx - u(xx - u(xx - u(xx)))
-    ims = [T(xx, yy) + rng.normal(0, 6, shape), T(X, yy) + rng.normal(0, 6, shape)]
+    shape = (120, 400)
+    ref, cur, u, rng = _sinusoid_pair(shape, 0.3, 160.0, 6)
+    ims = [ref, cur]
     pts = grid(shape, 32, 7)
     clicks = np.stack([pts, pts + np.column_stack([u(pts[:, 0]), 0 * pts[:, 0]])
                        + rng.normal(0, 0.5, pts.shape)], 1)

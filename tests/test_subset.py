@@ -30,6 +30,24 @@ def _texture(seed=0, n_waves=80, kmax=0.7):
     return T
 
 
+
+def _sinusoid_pair(shape, amp, period, noise, seed=2):
+    """A texture pair whose second view is displaced by ``u(x) = amp sin(2π x / period)`` px
+    along x (``x = X + u(X)`` solved by fixed point, error ~1e-5 px), each with Gaussian
+    noise of ``noise`` grey. Returns ``ref, cur, u`` and the generator (for further draws)."""
+    T = _texture(4, kmax=0.6)
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+
+    def u(x):
+        return amp * np.sin(2 * np.pi * x / period)
+
+    X = xx - u(xx - u(xx - u(xx)))
+    ref = T(xx, yy) + rng.normal(0, noise, shape)
+    cur = T(X, yy) + rng.normal(0, noise, shape)
+    return ref, cur, u, rng
+
+
 def _render(T, shape, A=np.eye(2), t=(0.0, 0.0), center=None):
     """Image of the texture after the map X -> A (X - c) + c + t (exact sampling).
 
