@@ -43,7 +43,11 @@ class StereoResult:
     ----------
     point_id : (N,) int
     pts : (N, V, 2) float
-        Matched (x, y) pixel positions in every view.
+        Matched (x, y) pixel positions in every view. With 3 or more views, automatic points
+        matched in the reference view and at least one other but not in all come after the
+        others, NaN in their other views (:attr:`n_views`): their heights come from their
+        own views at the tilts, offsets and reference surface of the complete points
+        (:func:`fewer_view_heights`), their ``z_err_um`` is the matching σ only.
     kind : (N,) str
         ``"click"`` (refined or raw hand clicks) or ``"auto"`` (automatic matching).
     crack_id : (N,) int
@@ -66,12 +70,6 @@ class StereoResult:
     notes : list of str
     reference : semlab.surface.ReferenceSurface or None
         The plane the heights are measured from (method, inliers, residual).
-    n_views : (N,) int or None
-        Views each point was matched in. With 3 or more views, automatic points matched in
-        the reference view and at least one other but not in all come after the others:
-        ``pts`` is NaN in their other views, their heights come from their own views at the
-        tilts, offsets and reference surface of the complete points
-        (:func:`fewer_view_heights`), and their ``z_err_um`` is the matching σ only.
     """
 
     point_id: np.ndarray
@@ -89,7 +87,11 @@ class StereoResult:
     method: str
     notes: list = field(default_factory=list)
     reference: object = None
-    n_views: np.ndarray = None
+
+    @property
+    def n_views(self):
+        """(N,) int: the views each point was matched in (``pts`` finite there)."""
+        return np.isfinite(self.pts[..., 0]).sum(axis=1)
 
     @property
     def z_um(self):
@@ -236,7 +238,7 @@ def fewer_view_heights(pts, partial, tilt_deg, pixel_size_um, tilt_axis_deg, ref
     -------
     pts (P, V, 2) with NaN in the views a point is not valid in, xyz_um (P, 3) with z
     above the reference, z_err_um (P,) (matching σ of its own views through the tilts,
-    :func:`semlab.surface.height_sigma`), sigma_px (P,), n_views (P,)
+    :func:`semlab.surface.height_sigma`), sigma_px (P,)
 
     The complete points fix the per-view offsets (the gauge), so each partial point is
     solved over its own views with the same offsets
@@ -258,7 +260,7 @@ def fewer_view_heights(pts, partial, tilt_deg, pixel_size_um, tilt_axis_deg, ref
     sv = np.where(vv, np.clip(np.nan_to_num(sv, nan=np.inf), 1e-4, None), np.inf)
     sv[:, ref] = 1e-3 * np.clip(partial.sigma_px, 1e-4, None)      # as view_sigmas
     z_err = surface.height_sigma(sv, tilt_deg, pixel_size_um)
-    return pp, xyz, np.asarray(z_err, float), partial.sigma_px.astype(float), vv.sum(1)
+    return pp, xyz, np.asarray(z_err, float), partial.sigma_px.astype(float)
 
 
 @dataclass
@@ -654,15 +656,13 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         z_err = np.sqrt(z_err ** 2 + np.asarray(sig_boot, float) ** 2)
     z = ref.heights(xyz_3d)
     xyz = np.column_stack([xyz_3d[:, :2], z])
-    n_views = np.full(len(pts), pts.shape[1])
     if partial is not None and len(partial) and exp.stereo.camera != "perspective":
-        pp, xyz_p, zerr_p, sig_p, nv_p = fewer_view_heights(pts, partial, tilt,
-                                                             exp.pixel_size_um, axis_used, ref)
+        pp, xyz_p, zerr_p, sig_p = fewer_view_heights(pts, partial, tilt, exp.pixel_size_um,
+                                                      axis_used, ref)
         pts, xyz = np.concatenate([pts, pp]), np.concatenate([xyz, xyz_p])
         z_err, sigma_px = np.concatenate([z_err, zerr_p]), np.concatenate([sigma_px, sig_p])
         kind = np.concatenate([kind, np.full(len(pp), "auto")])
-        idx, n_views = np.concatenate([idx, np.full(len(pp), -1)]), np.concatenate([n_views,
-                                                                                      nv_p])
+        idx = np.concatenate([idx, np.full(len(pp), -1)])
         # the reference surface was chosen among the complete points: the others are not
         # its inliers (its arrays follow the points)
         ref = replace(ref, inliers=np.concatenate([ref.inliers, np.zeros(len(pp), bool)]))
@@ -683,6 +683,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
             crack[clicked] = np.asarray(corr.crack_id)[idx[clicked]]
         start = int(np.max(corr.point_id)) + 1 if len(corr.point_id) else 0
     point_id[~clicked] = start + np.arange((~clicked).sum())
+    n_views = np.isfinite(pts[..., 0]).sum(axis=1)
     few = n_views < pts.shape[1]
     if few.any():   # they come last: point_id from first_point_id on
         calib["fewer_views"] = {
@@ -693,7 +694,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                         xyz_um=xyz, z_err_um=z_err, sigma_px=sigma_px, tilt_deg=np.asarray(tilt),
                         tilt_source=tilt_source, tilt_sigma_deg=np.asarray(tilt_sigma),
                         tilt_axis_deg=axis_used, calibration=calib, method=method, notes=notes,
-                        reference=ref, n_views=n_views)
+                        reference=ref)
 
 
 def write_stereo_results(result, out_dir, overwrite=False):

@@ -190,7 +190,7 @@ def test_points_seen_in_fewer_views_get_heights_in_the_same_frame(tmp_path, monk
     assert few.sum() > 100 and few[left].mean() > 0.9
     fl = few & left
     assert np.isnan(res.pts[fl, 2]).all() and res.in_views(0, 1)[fl].all()
-    assert np.array_equal(np.isfinite(res.pts[..., 0]).sum(1), res.n_views)
+    assert res.n_views.min() >= 2 and (res.n_views[~few] == 3).all()
     assert len(res.reference.inliers) == len(res.pts) and not res.reference.inliers[few].any()
     fv = res.calibration["fewer_views"]
     assert fv["n_points"] == few.sum() and (res.point_id[few] >= fv["first_point_id"]).all()
