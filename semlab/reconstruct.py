@@ -413,7 +413,9 @@ def _noise_corrected_scatter(uc, noise_weights):
     """
     S = uc @ uc.T
     w = np.asarray(noise_weights, float)
-    L = np.linalg.cholesky(S + 1e-300 * np.eye(len(S)))
+    # a relative jitter: exact (noise-free) rank-2 data make S singular, which an absolute
+    # 1e-300 does not regularise on every LAPACK build (numpy 2.4.6: not positive definite)
+    L = np.linalg.cholesky(S + 1e-12 * np.trace(S) / len(S) * np.eye(len(S)))
     Li = np.linalg.inv(L)
     mu = np.linalg.eigvalsh(Li @ np.diag(w) @ Li.T)       # ascending, = 1 / (Nλ)
     big = mu[::-1][: max(len(S) - 2, 1)]
