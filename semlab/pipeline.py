@@ -258,7 +258,8 @@ def fewer_view_heights(pts, partial, tilt_deg, pixel_size_um, tilt_axis_deg, ref
     sv = partial.view_sigma_px if partial.view_sigma_px is not None else \
         np.where(vv, partial.sigma_px[:, None], np.nan)
     sv = np.where(vv, np.clip(np.nan_to_num(sv, nan=np.inf), 1e-4, None), np.inf)
-    sv[:, ref] = 1e-3 * np.clip(partial.sigma_px, 1e-4, None)      # as view_sigmas
+    sv = view_sigmas(sv, sv.shape[1], np.ones(len(sv), bool), ref,
+                     point_sigma_px=np.clip(partial.sigma_px, 1e-4, None))
     z_err = surface.height_sigma(sv, tilt_deg, pixel_size_um)
     return pp, xyz, np.asarray(z_err, float), partial.sigma_px.astype(float)
 
@@ -480,7 +481,7 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None):
     raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
 
 
-def view_sigmas(sigma_px, n_views, matched, ref_view=0):
+def view_sigmas(sigma_px, n_views, matched, ref_view=0, point_sigma_px=None):
     """Per-view 1σ of the x coordinates, (N, V) pixels, for :func:`surface.height_sigma`.
 
     A matched point (refined click or automatic match) keeps its reference-view position
@@ -490,11 +491,43 @@ def view_sigmas(sigma_px, n_views, matched, ref_view=0):
     view) made the height σ √2 too large. The reference view gets 1e-3 of the point's σ
     (height_sigma needs positive values; the height σ changes by < 1e-6). Raw clicks
     (``matched`` False) carry their click error in every view.
+
+    Parameters
+    ----------
+    sigma_px : (N,) or (N, V) array
+        Pixels: one σ per point (every view), or per view (``inf`` where a point is not
+        matched, as :func:`surface.height_sigma` takes it; the reference column of a
+        matched point is replaced).
+    n_views : int
+        V.
+    matched : (N,) bool
+        The points whose reference-view position is exact.
+    ref_view : int
+    point_sigma_px : (N,) array, optional
+        The point's σ (pixels) the reference view gets 1e-3 of; default ``sigma_px`` when it
+        is (N,), the root mean square of the finite non-reference columns when (N, V) (as
+        :class:`semlab.match_result.MatchResult` defines ``sigma_px``).
+
+    Returns
+    -------
+    (N, V) float array, pixels
     """
     sig = np.asarray(sigma_px, float)
-    out = np.repeat(sig[:, None], n_views, axis=1)
+    if sig.ndim == 1:
+        out = np.repeat(sig[:, None], n_views, axis=1)
+        base = sig
+    elif sig.ndim == 2 and sig.shape[1] == n_views:
+        out = sig.copy()
+        oth = np.delete(sig, ref_view, axis=1)
+        fin = np.isfinite(oth)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            base = np.sqrt(np.sum(np.where(fin, oth, 0.0) ** 2, axis=1) / fin.sum(axis=1))
+    else:
+        raise SemlabError(f"sigma_px must be (N,) or (N, {n_views}), got shape {sig.shape}")
+    if point_sigma_px is not None:
+        base = np.asarray(point_sigma_px, float)
     m = np.asarray(matched, bool)
-    out[m, ref_view] = 1e-3 * sig[m]
+    out[m, ref_view] = 1e-3 * base[m]
     return out
 
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from semlab import pipeline, surface
+from semlab.errors import SemlabError
 from semlab.match_sigma import (aposteriori_sigma, match_sigma, model_error_at,
                                 model_error_from_fit,
                                 parallax_model_error)
@@ -84,6 +85,20 @@ def test_height_sigma_of_matches_counts_the_disparity_error_once():
     one = 0.03 * 0.1 * np.cos(th[0]) / np.sin(th[1] - th[0])
     assert z[0] == pytest.approx(one, rel=1e-5)
     assert z[1] == pytest.approx(one * np.sqrt(2), rel=1e-3)
+
+
+def test_view_sigmas_takes_per_view_sigmas():
+    """(N, V) σ: the other views kept (inf where unmatched), the reference view of a matched
+    point 1e-3 of the RMS of its finite other views (or of ``point_sigma_px``)."""
+    sv = np.array([[0.0, 0.3, 0.4], [0.0, 0.2, np.inf], [0.5, 0.5, 0.5]])
+    out = pipeline.view_sigmas(sv, 3, np.array([True, True, False]), ref_view=0)
+    assert np.array_equal(out[:, 1:], sv[:, 1:]) and out[2, 0] == 0.5
+    assert out[0, 0] == pytest.approx(1e-3 * np.sqrt((0.3 ** 2 + 0.4 ** 2) / 2))
+    assert out[1, 0] == pytest.approx(1e-3 * 0.2)
+    given = pipeline.view_sigmas(sv, 3, np.array([True, True, False]), point_sigma_px=[1, 2, 3])
+    assert np.array_equal(given[:2, 0], [1e-3, 2e-3])
+    with pytest.raises(SemlabError, match="sigma_px"):
+        pipeline.view_sigmas(sv[:, :2], 3, np.ones(3, bool))
 
 
 def test_model_error_at_clicks_off_the_grid():
