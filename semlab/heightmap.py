@@ -44,6 +44,7 @@ import numpy as np
 
 from .errors import GeometryError, ImageError, SemlabError
 from .heightmap_results import hillshade, write_heightmap_results
+from .pipeline import rows_in_views
 
 __all__ = [
     "DenseParams",
@@ -750,7 +751,7 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
         notes.append("camera = perspective: the map uses a linear (affine) height model "
                      "fitted to the triangulated points")
     # points matched in views 0 and 1 (with 3+ views some are seen in fewer views)
-    pair = np.all(np.isfinite(np.asarray(stereo.pts, float)[:, :2]), axis=(1, 2))
+    pair = rows_in_views(stereo.pts, 0, 1)
     try:
         model = height_model_from_points(stereo.pts[pair, :2], stereo.z_um[pair])
         notes.append(f"height model fitted to {pair.sum()} points, residual "
@@ -817,7 +818,7 @@ def stereo_noise_sigma(view0, view1, stereo):
     if rec is not None and len(rec) >= 2 and np.all(np.isfinite(np.asarray(rec[:2], float))):
         return (float(rec[0]), float(rec[1])), "recorded by the stereo step"
     pts = np.asarray(stereo.pts, float)
-    pts = pts[np.all(np.isfinite(pts[:, :2]), axis=(1, 2))]   # matched in views 0 and 1
+    pts = pts[rows_in_views(pts, 0, 1)]
     noise = calibrated_noise_sigma(view0, view1, pts[:, 0], pts[:, 1])
     return noise, (f"calibrated on the {len(pts)} stereo matches "
                    "(semlab.noise.calibrated_noise_sigma)")

@@ -99,8 +99,21 @@ class StereoResult:
         return self.xyz_um[:, 2]
 
     def in_views(self, *views):
-        """(N,) bool: the points matched in all of ``views`` (``pts`` finite there)."""
-        return np.all(np.isfinite(self.pts[:, list(views)]), axis=(1, 2))
+        """(N,) bool: the points matched in all of ``views`` (:func:`rows_in_views`)."""
+        return rows_in_views(self.pts, *views)
+
+
+def rows_in_views(pts, *views):
+    """(N,) bool: the rows of ``pts`` matched in all of ``views``.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        ``(x, y)`` pixel positions per view, NaN where a point is not matched.
+    *views : int
+        View indices.
+    """
+    return np.all(np.isfinite(np.asarray(pts, float)[:, list(views)]), axis=(1, 2))
 
 
 def _jsonable(obj):

@@ -170,6 +170,16 @@ def test_reference_region_recorded_in_calibration(tmp_path):
     assert rr["n_in_region"] == int(np.sum(res_r.pts[:, 0, 0] <= 100)) >= rr["n_inliers"]
 
 
+def test_rows_in_views_needs_x_and_y_finite_in_every_view_asked():
+    pts = np.zeros((4, 3, 2))
+    pts[1, 2] = np.nan                   # not in view 2
+    pts[2, 1, 1] = np.nan                # y lost in view 1
+    pts[3, 0, 0] = np.nan                # x lost in the reference view
+    assert pipeline.rows_in_views(pts, 0, 1).tolist() == [True, True, False, False]
+    assert pipeline.rows_in_views(pts, 0, 2).tolist() == [True, False, True, False]
+    assert pipeline.rows_in_views(pts.tolist(), 2).tolist() == [True, False, True, True]
+
+
 def test_points_seen_in_fewer_views_get_heights_in_the_same_frame(tmp_path, monkeypatch):
     """Three views, the left third of view 2 unusable (replaced by an unrelated texture):
     the automatic points there are kept with views 0 and 1, their heights in the frame of
