@@ -23,13 +23,14 @@ information, ``track_target_sigma_px=0.02``, with which ``run_tracking`` also se
 where the texture allows valid steps and the steps' σ count the model error, see
 ``track_reverse``'s ``max_sigma_px`` and ``model_neighbours``), ``lk`` the former default
 (pyramidal Lucas–Kanade on the corners), ``default, corners only`` the default without the
-grid. The truth of every track comes from the scene's own
+grid, ``default, up to 57 px`` / ``up to 81 px`` the default with larger sized subsets
+(``track_reverse(max_half_window=28 / 40)``; the default stops at 41 px). The truth of every track comes from the scene's own
 displacement field at the seed (end-state) position; the strain's truth is the Green–Lagrange
 strain from the reference frame the run chose to the end, ``F = (I − (1 − f_r) ∂U/∂x)⁻¹``.
 
 Printed per case and configuration: tracks, valid fraction per frame (F-2 = one step back
 from the end), RMS / max error of the valid steps of frames 0..F-2, how many valid steps are
-more than 0.5 px off, the strain's reference frame, and the strain error (median of the
+more than 0.5 px off, the RMS of error / σ over those steps (1 where the steps' 1σ holds), the strain's reference frame, and the strain error (median of the
 measured component against the median of the truth at the same points, the RMS of the
 point-wise error, and the RMS error against the same estimator, gauge and window applied to
 the true motion: what a perfect tracker would give, for the sparse local least squares and
@@ -53,7 +54,9 @@ STRAIN = (0.01, -0.005, 0.004)
 #: name -> (AnalysisConfig fields, extra keywords of series.run_tracking)
 CONFIGS = {"default": ({}, {}),
            "lk": ({"track_method": "lk"}, {}),
-           "default, corners only": ({}, {"grid_kw": None})}
+           "default, corners only": ({}, {"grid_kw": None}),
+           "default, up to 57 px": ({}, {"track_kw": {"max_half_window": 28}}),
+           "default, up to 81 px": ({}, {"track_kw": {"max_half_window": 40}})}
 
 
 def make_case(case, out, seed=0, drift=False, n_frames=8):
@@ -153,6 +156,7 @@ def run_case(case, config, seed=0, drift=False):
         toml, scene = make_case(case, Path(tmp) / "e", seed=seed, drift=drift)
         exp = experiment.load(toml)
         kw = {} if cfg.track_target is None else {"target_sigma_px": float(cfg.track_target)}
+        kw.update(extra.get("track_kw", {}))
         t0 = time.perf_counter()
         try:
             with warnings.catch_warnings(record=True):
@@ -174,7 +178,9 @@ def run_case(case, config, seed=0, drift=False):
                "valid": np.round(tr.valid.mean(1), 2).tolist(), "f2": float(tr.valid[-2].mean()),
                "rms": float(np.sqrt(np.mean(e ** 2))) if len(e) else np.nan,
                "max": float(e.max()) if len(e) else np.nan, "n_bad": int((e > 0.5).sum()),
-               "n_valid": int(v.sum()), "t_track": t_track}
+               "n_valid": int(v.sum()), "t_track": t_track,
+               # honesty of the steps' 1σ: RMS of error / σ over the valid steps (1 if it holds)
+               "z_rms": float(np.sqrt(np.mean((e / tr.sigma_px[:-1][v]) ** 2))) if len(e) else np.nan}
         f_frac = np.asarray(synth._series_schedule(tr.n_frames)[1])
         t0 = time.perf_counter()
         try:
@@ -212,7 +218,7 @@ def main():
     ap.add_argument("--drift", action="store_true")
     args = ap.parse_args()
     print("| case | config | tracks | valid per frame 0..F-1 | valid at F-2 | RMS / max error of "
-          "valid steps 0..F-2 (px) | valid steps > 0.5 px | strain ref frame | strain: truth / "
+          "valid steps 0..F-2 (px), RMS error / σ | valid steps > 0.5 px | strain ref frame | strain: truth / "
           "measured median (RMS error against the point-wise truth; against the same estimator "
           "on the true motion) | s (track + strain) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -224,7 +230,7 @@ def main():
                       f" {r['t_track']:.0f} |", flush=True)
                 continue
             print(f"| {r['case']} | {config} | {r['tracks']} | {r['valid']} | {r['f2']:.2f} | "
-                  f"{r['rms']:.3f} / {r['max']:.3f} ({r['n_valid']} steps) | {r['n_bad']} | "
+                  f"{r['rms']:.3f} / {r['max']:.3f} ({r['n_valid']} steps), {r['z_rms']:.2f} | {r['n_bad']} | "
                   f"{r.get('ref_frame', '-')} | {_fmt_strain(r['strain'])} | "
                   f"{r['t_track']:.0f} + {r['t_strain']:.0f} |", flush=True)
 
