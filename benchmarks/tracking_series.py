@@ -30,7 +30,7 @@ strain from the reference frame the run chose to the end, ``F = (I − (1 − f_
 
 Printed per case and configuration: tracks, valid fraction per frame (F-2 = one step back
 from the end), RMS / max error of the valid steps of frames 0..F-2, how many valid steps are
-more than 0.5 px off, the RMS of error / σ over those steps (1 where the steps' 1σ holds), the strain's reference frame, and the strain error (median of the
+more than 0.5 px off, the RMS of |error| / (√2 σ) over those steps (1 where the steps' per-axis 1σ holds; σ is the larger of x and y), the strain's reference frame, and the strain error (median of the
 measured component against the median of the truth at the same points, the RMS of the
 point-wise error, and the RMS error against the same estimator, gauge and window applied to
 the true motion: what a perfect tracker would give, for the sparse local least squares and
@@ -179,8 +179,10 @@ def run_case(case, config, seed=0, drift=False):
                "rms": float(np.sqrt(np.mean(e ** 2))) if len(e) else np.nan,
                "max": float(e.max()) if len(e) else np.nan, "n_bad": int((e > 0.5).sum()),
                "n_valid": int(v.sum()), "t_track": t_track,
-               # honesty of the steps' 1σ: RMS of error / σ over the valid steps (1 if it holds)
-               "z_rms": float(np.sqrt(np.mean((e / tr.sigma_px[:-1][v]) ** 2))) if len(e) else np.nan}
+               # honesty of the steps' 1σ (per axis, the larger of x and y): RMS of
+               # |error| / (√2 σ) over the valid steps, 1 for a 2-D error with that σ per axis
+               "z_rms": float(np.sqrt(np.mean((e / tr.sigma_px[:-1][v]) ** 2) / 2))
+               if len(e) else np.nan}
         f_frac = np.asarray(synth._series_schedule(tr.n_frames)[1])
         t0 = time.perf_counter()
         try:
@@ -218,7 +220,7 @@ def main():
     ap.add_argument("--drift", action="store_true")
     args = ap.parse_args()
     print("| case | config | tracks | valid per frame 0..F-1 | valid at F-2 | RMS / max error of "
-          "valid steps 0..F-2 (px), RMS error / σ | valid steps > 0.5 px | strain ref frame | strain: truth / "
+          "valid steps 0..F-2 (px), RMS |error| / (√2 σ) | valid steps > 0.5 px | strain ref frame | strain: truth / "
           "measured median (RMS error against the point-wise truth; against the same estimator "
           "on the true motion) | s (track + strain) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
