@@ -472,18 +472,22 @@ def _ladder(h_min, h_max):
 
 
 def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_sigma_px,
-               ref_coef, cur_coef, target_sigma_px, max_half_window, return_bias=False,
-               **kw):
-    """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``; returns the
-    SubsetResult and the (N,) half sizes used (and with ``return_bias`` the (N,) curvature
-    bias in pixels of :func:`adaptive_icgn` with ``curvature_neighbours``, 0 without:
-    ``AdaptiveResult.bias_px``, or with ``return_bias="rms"`` its ``bias_rms_px``)."""
+               ref_coef, cur_coef, target_sigma_px, max_half_window, bias="none", **kw):
+    """IC-GN of the square subsets, fixed or sized by ``target_sigma_px``.
+
+    Returns the SubsetResult and the (N,) half sizes used, and unless ``bias`` is
+    ``"none"`` the (N,) curvature bias in pixels of :func:`adaptive_icgn` with
+    ``curvature_neighbours`` (0 without): ``"signed"`` its ``AdaptiveResult.bias_px``,
+    ``"rms"`` its ``bias_rms_px``.
+    """
+    if bias not in ("none", "signed", "rms"):
+        raise SemlabError(f"bias must be 'none', 'signed' or 'rms', got {bias!r}")
     if target_sigma_px is None:
         r = icgn_refine(ref_img, img, pts, guess, half_window=half_window, warp=warp,
                         init_warp=init_warp, smooth_sigma_px=smooth_sigma_px,
                         ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
         hw = np.full(len(pts), int(half_window))
-        return (r, hw, np.zeros(len(pts))) if return_bias else (r, hw)
+        return (r, hw) if bias == "none" else (r, hw, np.zeros(len(pts)))
     kw.pop("progress", None)
     a = adaptive_icgn(ref_img, img, pts, guess, target_sigma_px,
                       half_windows=_ladder(half_window, max(half_window, max_half_window)),
@@ -491,8 +495,8 @@ def _grid_icgn(ref_img, img, pts, guess, half_window, warp, init_warp, smooth_si
                       ref_prefiltered=ref_coef, cur_prefiltered=cur_coef, **kw)
     # a point that missed the target is still a match (its sigma says how good)
     reason = np.where(a.subset.converged, "", a.subset.reason)
-    if return_bias:
-        b = a.bias_rms_px if return_bias == "rms" else a.bias_px
-        bias = np.zeros(len(pts)) if b is None else np.nan_to_num(b)
-        return replace(a.subset, reason=reason), np.maximum(a.half_window, 0), bias
+    if bias != "none":
+        b = a.bias_rms_px if bias == "rms" else a.bias_px
+        bias_px = np.zeros(len(pts)) if b is None else np.nan_to_num(b)
+        return replace(a.subset, reason=reason), np.maximum(a.half_window, 0), bias_px
     return replace(a.subset, reason=reason), np.maximum(a.half_window, 0)

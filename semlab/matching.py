@@ -567,7 +567,7 @@ def _stage_grid_match(st, view, progress):
     r, hw_j, bias_j = _grid_icgn(
         ims[ref], ims[j], gw, np.where(np.isfinite(guess), guess, guess0), p.half_window,
         "affine", init_w, sm, ref_coef, cur_coef, p.target_sigma_px, p.max_half_window,
-        return_bias=True, progress=progress, max_iter=p.max_iter, tol_px=p.tol_px,
+        bias="signed", progress=progress, max_iter=p.max_iter, tol_px=p.tol_px,
         **({"curvature_neighbours": p.curvature_neighbours} if total else {}))
     view.bias_j = bias_j if total else None
     st.side[st.work] = np.maximum(st.side[st.work], np.where(r.converged, 2 * hw_j + 1, 0))

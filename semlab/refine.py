@@ -203,7 +203,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         r, hw_j, bias_j = _grid_icgn(
             ims[ref], ims[j], pr, np.where(np.isfinite(guess), guess, p[:, j]), half_window,
             warp, grad, smooth_sigma_px, ref_coef, cur_coef, target_sigma_px,
-            max_half_window, return_bias="rms" if bias_in_sigma == "expected" else True,
+            max_half_window, bias="rms" if bias_in_sigma == "expected" else "signed",
             progress=progress,
             **({} if curvature_neighbours is None or target_sigma_px is None
                else {"curvature_neighbours": curvature_neighbours}))

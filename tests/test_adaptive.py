@@ -210,3 +210,28 @@ def test_error_bar_holds_the_curvature_bias_the_ladder_leaves_unknown():
     noise_only = adaptive_icgn(ref, cur, pts[:5], pts[:5], 0.02, half_windows=(7, 10),
                                warp="affine")
     assert noise_only.bias_rms_px is None and noise_only.bias_px is None
+
+
+def test_grid_icgn_bias_keyword_selects_the_bias_returned():
+    """``bias``: none (two items), the signed de-biased estimate or the expected squared
+    bias of :func:`adaptive_icgn`; zeros for fixed subsets; anything else refused."""
+    from semlab.adaptive import _grid_icgn
+    from semlab.subset import prefilter_image
+
+    shape = (120, 400)
+    ref, cur, _, _ = _sinusoid_pair(shape, 0.3, 160.0, 6)
+    pts = _grid(shape, 30, 10)
+    rc, cc = prefilter_image(ref, 0.8), prefilter_image(cur, 0.8)
+    args = (ref, cur, pts, pts, 7, "affine", np.zeros(6), 0.8, rc, cc, 0.02, 28)
+    kw = dict(noise_sigma="calibrated", curvature_neighbours=1)
+    a = adaptive_icgn(ref, cur, pts, pts, 0.02, half_windows=(7, 10, 14, 20, 28),
+                      warp="affine", smooth_sigma_px=0.8, ref_prefiltered=rc,
+                      cur_prefiltered=cc, init_warp=np.zeros(6), **kw)
+    assert len(_grid_icgn(*args, **kw)) == 2
+    signed, rms = (_grid_icgn(*args, bias=b, **kw)[2] for b in ("signed", "rms"))
+    assert np.array_equal(signed, np.nan_to_num(a.bias_px))
+    assert np.array_equal(rms, np.nan_to_num(a.bias_rms_px)) and not np.array_equal(rms, signed)
+    fixed = _grid_icgn(*args[:10], None, 28, bias="rms")
+    assert len(fixed) == 3 and not fixed[2].any()
+    with pytest.raises(SemlabError, match="bias"):
+        _grid_icgn(*args, bias=True)
