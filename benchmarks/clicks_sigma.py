@@ -1,4 +1,5 @@
-"""Refined clicks: their error bars, before/after, and a per-click breakdown of the misses.
+"""Refined clicks: their error bars, against noise-sized subsets, and a per-click breakdown
+of the misses.
 
 Run:  python benchmarks/clicks_sigma.py real:fei/low/0/8,real:quartz/realistic/0/8 0,1,2
       (cells as in ``accuracy_matrix.py --cells``; seeds comma-separated; ~10 s per cell)
@@ -22,8 +23,11 @@ chosen subset minus the true height at the click, :func:`_truth_model_error`). P
 table of the misses (``|error| > 2σ``) and the pooled fractions per class.
 Results: ``benchmarks/results/clicks_sigma_diagnosis.md``.
 
-(before / after in :data:`VARIANTS`: ``bias_in_sigma="estimate"``, the de-biased ladder
-bias of before 2026-12-02, and the default, the expected squared ladder bias.)
+(:data:`VARIANTS`: subsets sized by the noise alone, ``curvature_neighbours=None``, whose
+σ carries no curvature bias, and the default, sized by the total error with the expected
+squared ladder bias in σ. The before / after of 2026-12-02, ``bias_in_sigma="estimate"``
+against the default, needs a semlab from before that option was removed: README "Accuracy
+and speed" and ``benchmarks/results/clicks_sigma_diagnosis.md``.)
 """
 
 from __future__ import annotations
@@ -40,8 +44,8 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
 
-VARIANTS = {"before": {"target_sigma_px": 0.05, "bias_in_sigma": "estimate"},
-            "after": {"target_sigma_px": 0.05}}
+VARIANTS = {"noise-sized": {"target_sigma_px": 0.05, "curvature_neighbours": None},
+            "default": {"target_sigma_px": 0.05}}
 STEEP = 0.25      # truth |∇z| (µm/µm) counted as a band flank
 
 

@@ -33,8 +33,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
                            warp="affine", min_zncc=0.8, *, smooth_sigma_px=None,
                            band_aware=True, band_half_width_px=3, kappa=SQRT2,
                            target_sigma_px=0.05, min_half_window=7, max_half_window=28,
-                           curvature_neighbours=1, max_info_offset=2 / 3,
-                           bias_in_sigma="expected", progress=False):
+                           curvature_neighbours=1, max_info_offset=2 / 3, progress=False):
     """Refine hand-clicked correspondences to sub-pixel accuracy.
 
     The reference-view positions are kept exactly (they define which material point is
@@ -108,19 +107,17 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         buries the subset-averaging bias (−5/+5° noise-free: |error| up to 79 nm at σ
         4-20 nm, model error 0 at 9 of the 10 worst clicks, the error correlated 0.6-0.8
         with the truth's subset mean minus its centre). None: sized by the noise alone.
-    bias_in_sigma : {"expected", "estimate"}
-        With ``curvature_neighbours``, which curvature bias the click's σ carries as its
-        model error. ``"expected"``: the expected squared bias given the size ladder,
+        The model error is the expected squared bias given the size ladder,
         ``(β̂² + var β̂) c_h²`` from the independent increments of the nested subsets'
         matches (:func:`semlab.adaptive._nested_bias`): the match is not corrected, so its
-        error bar holds the bias as far as the ladder leaves it unknown. ``"estimate"``
-        (before 2026-12-02): the de-biased estimate ``max(β̂² − var β̂, 0) c_h²`` that sizes
-        the subset, 0 wherever the bias is below the ladder's noise, which is where the
-        subsets grow to the largest size: on the 9 accuracy-matrix cells whose clicks were
-        below 93 % within 2σ (seeds 0-2, 1258 clicks) the clicks with ``h >= 14`` were
-        87 % within 2σ (misses at σ 0.02-0.04 px with errors 0.07-0.34 px, far from the
-        slip-band flanks, predicted model error 0), those with ``h <= 10`` 93 %
-        (``benchmarks/clicks_sigma.py --diagnose``). The subset sizes are the same.
+        error bar holds the bias as far as the ladder leaves it unknown. The de-biased
+        estimate ``max(β̂² − var β̂, 0) c_h²`` that sizes the subset (the σ's model error
+        before 2026-12-02) is 0 wherever the bias is below the ladder's noise, which is
+        where the subsets grow to the largest size: on the 9 accuracy-matrix cells whose
+        clicks were below 93 % within 2σ (seeds 0-2, 1258 clicks) the clicks with
+        ``h >= 14`` were 87 % within 2σ (misses at σ 0.02-0.04 px with errors 0.07-0.34 px,
+        far from the slip-band flanks, predicted model error 0), those with ``h <= 10``
+        93 % (``benchmarks/clicks_sigma.py --diagnose``).
     max_info_offset : float or None
         Invalidate (with the reason) clicks whose square subset's x information (``gx²``
         of the reference view) is centred more than this fraction of its half size away
@@ -167,9 +164,6 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
     ref = _check_ref_view(ref_view, v)
     if not 0 <= min_zncc <= 1:
         raise SemlabError(f"min_zncc must be in [0, 1], got {min_zncc!r}")
-    if bias_in_sigma not in ("expected", "estimate"):
-        raise SemlabError(f"bias_in_sigma must be 'expected' or 'estimate', got "
-                          f"{bias_in_sigma!r}")
 
     out = p.copy()
     zn = np.ones((n, v))
@@ -203,7 +197,7 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         r, hw_j, bias_j = _grid_icgn(
             ims[ref], ims[j], pr, np.where(np.isfinite(guess), guess, p[:, j]), half_window,
             warp, grad, smooth_sigma_px, ref_coef, cur_coef, target_sigma_px,
-            max_half_window, bias="rms" if bias_in_sigma == "expected" else "signed",
+            max_half_window, bias="rms",
             progress=progress,
             **({} if curvature_neighbours is None or target_sigma_px is None
                else {"curvature_neighbours": curvature_neighbours}))
