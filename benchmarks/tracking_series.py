@@ -149,7 +149,25 @@ def strain_errors(S, scene, f_frac, shape, true_ref_px=None, true_end_px=None):
     return out
 
 
-def run_case(case, config, seed=0, drift=False):
+def nonaffine_px(scene, pts_last_px, side_px, frac_left, shape):
+    """Largest departure (px) of the true displacement still to come from an affine map over
+    each step's square subset (``side_px`` wide, centred on its last-frame point): how far
+    the motion inside the subset is from what an affine subset can follow (slip bands)."""
+    c = synth.image_center(shape)
+    s_um = scene.pixel_size_um
+    out = np.full(len(pts_last_px), np.nan)
+    for i, (p, side, fr) in enumerate(zip(np.asarray(pts_last_px, float), side_px, frac_left)):
+        g = np.arange(-(int(side) // 2), int(side) // 2 + 1, 2.0)
+        X, Y = np.meshgrid(g, g)
+        X, Y = X.ravel() + p[0], Y.ravel() + p[1]
+        U = fr * np.stack(scene.displacement((X - c[0]) * s_um, (Y - c[1]) * s_um), 1) / s_um
+        A = np.column_stack([np.ones_like(X), X - p[0], Y - p[1]])
+        res = U - A @ np.linalg.lstsq(A, U, rcond=None)[0]
+        out[i] = np.sqrt((res ** 2).sum(1)).max()
+    return out
+
+
+def run_case(case, config, seed=0, drift=False, nonaffine=False):
     fields, extra = CONFIGS[config]
     cfg = AnalysisConfig(**fields)
     with tempfile.TemporaryDirectory() as tmp:
@@ -184,6 +202,13 @@ def run_case(case, config, seed=0, drift=False):
                "z_rms": float(np.sqrt(np.mean((e / tr.sigma_px[:-1][v]) ** 2) / 2))
                if len(e) else np.nan}
         f_frac = np.asarray(synth._series_schedule(tr.n_frames)[1])
+        if nonaffine and tr.subset_px is not None:
+            kk, ii = np.nonzero(v)
+            na = nonaffine_px(scene, tr.xy[-1][ii], tr.subset_px[kk, ii], 1.0 - f_frac[kk], shape)
+            res["nonaffine"] = [(lo, hi, int(m.sum()), float(np.sqrt(np.mean(e[m] ** 2))),
+                                 int((e[m] > 0.5).sum()))
+                                for lo, hi in ((0, 0.1), (0.1, 0.3), (0.3, 1.0), (1.0, np.inf))
+                                for m in [(na >= lo) & (na < hi)] if m.any()]
         t0 = time.perf_counter()
         try:
             with warnings.catch_warnings(record=True):
@@ -218,6 +243,9 @@ def main():
     ap.add_argument("--configs", default=";".join(CONFIGS), help="separated by ';'")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drift", action="store_true")
+    ap.add_argument("--nonaffine", action="store_true",
+                    help="also print the valid steps binned by how far the true motion inside "
+                         "their subset departs from affine (px): count, RMS error, > 0.5 px")
     args = ap.parse_args()
     print("| case | config | tracks | valid per frame 0..F-1 | valid at F-2 | RMS / max error of "
           "valid steps 0..F-2 (px), RMS |error| / (√2 σ) | valid steps > 0.5 px | strain ref frame | strain: truth / "
@@ -226,7 +254,7 @@ def main():
     print("|---|---|---|---|---|---|---|---|---|---|")
     for case in args.cases.split(","):
         for config in args.configs.split(";"):
-            r = run_case(case, config, seed=args.seed, drift=args.drift)
+            r = run_case(case, config, seed=args.seed, drift=args.drift, nonaffine=args.nonaffine)
             if "error" in r:
                 print(f"| {r['case']} | {config} | - | {r['error']} | 0 | - | - | - | no strain |"
                       f" {r['t_track']:.0f} |", flush=True)
@@ -235,6 +263,9 @@ def main():
                   f"{r['rms']:.3f} / {r['max']:.3f} ({r['n_valid']} steps), {r['z_rms']:.2f} | {r['n_bad']} | "
                   f"{r.get('ref_frame', '-')} | {_fmt_strain(r['strain'])} | "
                   f"{r['t_track']:.0f} + {r['t_strain']:.0f} |", flush=True)
+            for lo, hi, n, rms, nb in r.get("nonaffine", []):
+                print(f"|  | non-affine motion in the subset {lo:g}–{hi:g} px | {n} steps | "
+                      f"RMS {rms:.3f} px | {nb} > 0.5 px |", flush=True)
 
 
 if __name__ == "__main__":
