@@ -746,8 +746,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
 def write_stereo_results(result, out_dir, overwrite=False):
     """Write ``points3d.csv`` and ``calibration.json`` into ``out_dir``.
 
-    ``points3d.csv`` columns: ``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um`` with pixel
-    coordinates in view 0.
+    ``points3d.csv`` columns: ``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um,n_views`` with
+    pixel coordinates in view 0 and the number of views each point was matched in
+    (:attr:`StereoResult.n_views`).
     """
     from . import surface
 
@@ -755,7 +756,7 @@ def write_stereo_results(result, out_dir, overwrite=False):
     out.mkdir(parents=True, exist_ok=True)
     p = out / "points3d.csv"
     surface.write_points3d_csv(p, result.point_id, result.pts[:, 0], result.xyz_um,
-                               result.z_err_um, overwrite=overwrite)
+                               result.z_err_um, overwrite=overwrite, n_views=result.n_views)
     c = out / "calibration.json"
     if c.exists() and not overwrite:
         raise SemlabError(f"{c}: exists already; write results to a new folder")

@@ -40,7 +40,7 @@ __all__ = [
     "read_points3d_csv",
 ]
 
-POINTS3D_COLUMNS = ("point_id", "x_px", "y_px", "x_um", "y_um", "z_um", "z_err_um")
+POINTS3D_COLUMNS = ("point_id", "x_px", "y_px", "x_um", "y_um", "z_um", "z_err_um", "n_views")
 #: Matched points averaged around each picked point of a three-point reference plane.
 THREE_POINT_NEIGHBOURS = 5
 
@@ -507,8 +507,10 @@ def height_trend(xyz_um):
     return out
 
 
-def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False):
-    """Write ``points3d.csv`` with columns ``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um``.
+def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False, *,
+                       n_views=None):
+    """Write ``points3d.csv`` with columns :data:`POINTS3D_COLUMNS`
+    (``point_id,x_px,y_px,x_um,y_um,z_um,z_err_um,n_views``).
 
     Parameters
     ----------
@@ -522,6 +524,9 @@ def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False
         ``(x, y, z)`` µm (z usually the height above the reference plane).
     z_err_um : (N,) array_like or float
         1σ height error, µm (NaN allowed when unknown).
+    n_views : (N,) array_like of int
+        Number of views each point was matched in (its height comes from those), >= 1.
+        Required (e.g. :attr:`semlab.pipeline.StereoResult.n_views`).
 
     Returns
     -------
@@ -539,10 +544,16 @@ def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False
     xyz = np.asarray(xyz_um, float)
     err = np.broadcast_to(np.asarray(z_err_um, float), (n,)) if np.ndim(z_err_um) == 0 \
         else np.asarray(z_err_um, float).ravel()
-    if px.shape != (n, 2) or xyz.shape != (n, 3) or err.shape != (n,):
+    if n_views is None:
+        raise SemlabError("n_views is required: the number of views each point was matched in")
+    nv = np.asarray(n_views)
+    if px.shape != (n, 2) or xyz.shape != (n, 3) or err.shape != (n,) or nv.shape != (n,):
         raise SemlabError(
             f"inconsistent lengths: point_id {ids.shape}, pts_px {np.shape(pts_px)}, xyz_um "
-            f"{np.shape(xyz_um)}, z_err_um {np.shape(z_err_um)}; expected N={n} rows each")
+            f"{np.shape(xyz_um)}, z_err_um {np.shape(z_err_um)}, n_views {nv.shape}; "
+            f"expected N={n} rows each")
+    if n and (nv.dtype.kind not in "iu" or nv.min() < 1):
+        raise SemlabError(f"n_views must be integers >= 1, got {nv.dtype} values")
     if len(set(ids.tolist())) != n:
         raise SemlabError("point_id has duplicates: each point needs a unique id")
     if any("," in str(i) or "\n" in str(i) for i in ids.tolist()):
@@ -552,40 +563,48 @@ def write_points3d_csv(path, point_id, pts_px, xyz_um, z_err_um, overwrite=False
         wr = csv.writer(fh, lineterminator="\n")
         wr.writerow(POINTS3D_COLUMNS)
         for i in range(n):
-            wr.writerow([ids[i], *(f"{val:.10g}" for val in (*px[i], *xyz[i], err[i]))])
+            wr.writerow([ids[i], *(f"{val:.10g}" for val in (*px[i], *xyz[i], err[i])),
+                         int(nv[i])])
     return path
 
 
 def read_points3d_csv(path):
     """Read a ``points3d.csv`` written by :func:`write_points3d_csv`.
 
+    Files from before the ``n_views`` column (2026-12-03: the other columns only) are read
+    too, without an ``n_views`` entry.
+
     Returns
     -------
     dict
-        One array per column of :data:`POINTS3D_COLUMNS`; ``point_id`` is int64 when every
-        id is an integer, otherwise str; the others are float (N,).
+        One array per column of the file; ``point_id`` is int64 when every id is an
+        integer, otherwise str; ``n_views`` int64; the others are float (N,).
     """
     path = Path(path)
     if not path.is_file():
         raise SemlabError(f"{path} does not exist or is not a file")
     with open(path, newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
-    if not rows or tuple(h.strip() for h in rows[0]) != POINTS3D_COLUMNS:
+    cols = tuple(h.strip() for h in rows[0]) if rows else ()
+    if cols not in (POINTS3D_COLUMNS, POINTS3D_COLUMNS[:-1]):
         raise SemlabError(
             f"{path} is not a points3d.csv: the header must be {','.join(POINTS3D_COLUMNS)}")
     body = [r for r in rows[1:] if r]
-    if any(len(r) != len(POINTS3D_COLUMNS) for r in body):
-        raise SemlabError(f"{path}: every row needs {len(POINTS3D_COLUMNS)} fields")
+    if any(len(r) != len(cols) for r in body):
+        raise SemlabError(f"{path}: every row needs {len(cols)} fields")
     ids = [r[0] for r in body]
     try:
         id_arr = np.array([int(i) for i in ids], dtype=np.int64)
     except ValueError:
         id_arr = np.array(ids, dtype=str)
     try:
-        vals = np.array([[float(x) for x in r[1:]] for r in body], dtype=float).reshape(-1, 6)
+        vals = np.array([[float(x) for x in r[1:7]] for r in body], dtype=float).reshape(-1, 6)
+        nv = np.array([int(r[7]) for r in body], dtype=np.int64) if len(cols) == 8 else None
     except ValueError as exc:
         raise SemlabError(f"{path}: non-numeric value ({exc})") from None
     out = {"point_id": id_arr}
-    for k, name in enumerate(POINTS3D_COLUMNS[1:]):
+    for k, name in enumerate(POINTS3D_COLUMNS[1:7]):
         out[name] = vals[:, k]
+    if nv is not None:
+        out["n_views"] = nv
     return out

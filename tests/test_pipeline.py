@@ -215,3 +215,10 @@ def test_points_seen_in_fewer_views_get_heights_in_the_same_frame(tmp_path, monk
     rms_few, rms_all = (float(np.sqrt(np.mean(u[s] ** 2))) for s in (few, ~few))
     assert rms_few < 1.3 * rms_all        # as accurate, relative to their (larger) σ
     assert np.mean(np.abs(u[few]) <= 2) > 0.9
+    # points3d.csv says how many views each point was matched in (its last column)
+    from semlab.surface import read_points3d_csv
+
+    back = read_points3d_csv(pipeline.write_stereo_results(res, tmp_path / "out")[0])
+    assert np.array_equal(back["point_id"], res.point_id)
+    assert np.array_equal(back["n_views"], res.n_views) and (back["n_views"] == 2).sum() > 100
+    assert np.array_equal(back["n_views"] < 3, back["point_id"] >= fv["first_point_id"])

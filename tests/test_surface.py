@@ -355,13 +355,22 @@ def _table(n=6, seed=0):
             rng.uniform(0, 0.01, n))
 
 
+def _nv(n=6):
+    """(n,) views per point: 3, 2, 3, 2, ..."""
+    return np.where(np.arange(n) % 2, 2, 3)
+
+
 def test_points3d_csv_round_trip(tmp_path):
     ids, pts, xyz, err = _table()
     err[2] = np.nan
-    path = write_points3d_csv(tmp_path / "out" / "points3d.csv", ids, pts, xyz, err)
+    path = write_points3d_csv(tmp_path / "out" / "points3d.csv", ids, pts, xyz, err,
+                              n_views=_nv())
     assert path.read_text().splitlines()[0] == ",".join(POINTS3D_COLUMNS)
+    assert POINTS3D_COLUMNS[-1] == "n_views"      # added last: readers by position still work
     back = read_points3d_csv(path)
     assert list(back) == list(POINTS3D_COLUMNS)
+    assert back["n_views"].dtype.kind == "i" and np.array_equal(back["n_views"], _nv())
+    assert path.read_text().splitlines()[2].endswith(",2")
     assert back["point_id"].dtype.kind == "i" and np.array_equal(back["point_id"], ids)
     assert np.allclose(back["x_px"], pts[:, 0, 0], rtol=1e-9)  # view 0
     assert np.allclose(back["y_px"], pts[:, 0, 1], rtol=1e-9)
@@ -373,21 +382,29 @@ def test_points3d_csv_round_trip(tmp_path):
 def test_points3d_csv_refuses_overwrite(tmp_path):
     ids, pts, xyz, err = _table()
     path = tmp_path / "points3d.csv"
-    write_points3d_csv(path, ids, pts, xyz, err)
+    write_points3d_csv(path, ids, pts, xyz, err, n_views=_nv())
     before = path.read_text()
     with pytest.raises(SemlabError, match="overwrite=True"):
-        write_points3d_csv(path, ids, pts, xyz * 2, err)
+        write_points3d_csv(path, ids, pts, xyz * 2, err, n_views=_nv())
     assert path.read_text() == before
-    write_points3d_csv(path, ids, pts, xyz * 2, err, overwrite=True)
+    write_points3d_csv(path, ids, pts, xyz * 2, err, overwrite=True, n_views=_nv())
     assert np.allclose(read_points3d_csv(path)["x_um"], 2 * xyz[:, 0])
 
 
 def test_points3d_csv_errors(tmp_path):
     ids, pts, xyz, err = _table()
     with pytest.raises(SemlabError, match="duplicates"):
-        write_points3d_csv(tmp_path / "a.csv", np.zeros(6, int), pts, xyz, err)
+        write_points3d_csv(tmp_path / "a.csv", np.zeros(6, int), pts, xyz, err, n_views=_nv())
     with pytest.raises(SemlabError, match="inconsistent"):
-        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz[:4], err)
+        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz[:4], err, n_views=_nv())
+    with pytest.raises(SemlabError, match="inconsistent"):
+        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz, err, n_views=_nv(4))
+    with pytest.raises(SemlabError, match="n_views is required"):
+        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz, err)
+    with pytest.raises(SemlabError, match="integers >= 1"):
+        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz, err, n_views=_nv() - 2)
+    with pytest.raises(SemlabError, match="integers >= 1"):
+        write_points3d_csv(tmp_path / "b.csv", ids, pts, xyz, err, n_views=_nv() + 0.5)
     bad = tmp_path / "bad.csv"
     bad.write_text("id,x,y\n1,2,3\n")
     with pytest.raises(SemlabError, match="header"):
@@ -395,22 +412,36 @@ def test_points3d_csv_errors(tmp_path):
     with pytest.raises(SemlabError, match="does not exist"):
         read_points3d_csv(tmp_path / "missing.csv")
     with pytest.raises(SemlabError, match="commas"):
-        write_points3d_csv(tmp_path / "c.csv", np.array(["a,b", "c"]), pts[:2], xyz[:2], err[:2])
+        write_points3d_csv(tmp_path / "c.csv", np.array(["a,b", "c"]), pts[:2], xyz[:2], err[:2],
+                           n_views=_nv(2))
     header = ",".join(POINTS3D_COLUMNS)
     short = tmp_path / "short.csv"
-    short.write_text(header + "\n1,2,3\n")
-    with pytest.raises(SemlabError, match="7 fields"):
+    short.write_text(header + "\n1,2,3,4,5,6,7\n")
+    with pytest.raises(SemlabError, match="8 fields"):
         read_points3d_csv(short)
     text = tmp_path / "text.csv"
-    text.write_text(header + "\n1,2,3,4,5,six,7\n")
+    text.write_text(header + "\n1,2,3,4,5,six,7,2\n")
     with pytest.raises(SemlabError, match="non-numeric"):
         read_points3d_csv(text)
+    text.write_text(header + "\n1,2,3,4,5,6,7,2.5\n")
+    with pytest.raises(SemlabError, match="non-numeric"):
+        read_points3d_csv(text)
+
+
+def test_points3d_csv_without_n_views_is_still_read(tmp_path):
+    """A file from before the n_views column: the other columns, no n_views entry."""
+    old = tmp_path / "old.csv"
+    old.write_text(",".join(POINTS3D_COLUMNS[:-1]) + "\n4,1,2,3,4,5,6\n")
+    back = read_points3d_csv(old)
+    assert "n_views" not in back and back["point_id"].tolist() == [4]
+    assert back["z_err_um"].tolist() == [6.0]
 
 
 def test_points3d_csv_string_ids(tmp_path):
     _, pts, xyz, err = _table(n=3)
     ids = np.array(["p1", "p2", "crack7_a"])
-    back = read_points3d_csv(write_points3d_csv(tmp_path / "s.csv", ids, pts, xyz, err))
+    back = read_points3d_csv(write_points3d_csv(tmp_path / "s.csv", ids, pts, xyz, err,
+                                                n_views=_nv(3)))
     assert back["point_id"].tolist() == ids.tolist()
 
 
