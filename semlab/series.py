@@ -210,7 +210,10 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
     -------
     dict
         :func:`semlab.strain.strain_from_tracks` plus ``history`` (mean strain of every frame
-        relative to the end state).
+        relative to the end state). ``E_lsq_sigma`` is the 1σ of the sparse strain propagated
+        from the tracks' ``sigma_px`` in the reference frame (each track's predicted error
+        relative to its seed in the last frame); NaN when the tracks were made without
+        direct correction, whose ``sigma_px`` is that of the last chained step only.
 
     Raises
     ------
@@ -244,9 +247,11 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
             zi = griddata(pz, zz, (x, y), method="linear")
             return np.where(np.isfinite(zi), zi, griddata(pz, zz, (x, y), method="nearest"))
     frames = exp.frames(progress=progress)
+    direct = tracks.params.get("direct_correction", True)
     out = st.strain_from_tracks(frames, tracks.xy, tracks.valid, tr.pixel_size_um,
                                 int(enough[0]), gauge_length_px=gauge_length_px,
-                                heights=heights, progress=progress)
+                                heights=heights, progress=progress,
+                                sigma_px=tracks.sigma_px if direct else None)
     out["history"] = tracking_strain_history(tracks, exp.series.cycles, tr.pixel_size_um)
     return out
 

@@ -23,6 +23,9 @@ from .errors import GeometryError, SemlabError
 __all__ = [
     "gradient_from_triangles",
     "gradient_local_lsq",
+    "strain_jacobian",
+    "strain_covariance",
+    "strain_sigma",
     "gradient_from_field",
     "small_strain",
     "green_lagrange",
@@ -115,13 +118,35 @@ def gradient_from_triangles(pts_ref, disp, min_angle_deg=10.0):
     return G, T
 
 
-def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
+def _disp_sigma(disp_sigma, n):
+    """(N, 2) per-component displacement σ from an (N,) or (N, 2) ``disp_sigma``."""
+    sg = np.asarray(disp_sigma, dtype=float)
+    if sg.shape == (n,):
+        sg = np.repeat(sg[:, None], 2, axis=1)
+    if sg.shape != (n, 2):
+        raise GeometryError(f"disp_sigma must have shape ({n},) or ({n}, 2), got {sg.shape}")
+    if np.any(sg < 0):
+        raise GeometryError("disp_sigma must be >= 0 (inf: unknown error)")
+    return sg
+
+
+def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6, disp_sigma=None,
+                       weighted=False):
     """Displacement gradient at each point from a local least-squares affine fit.
 
     At each point the neighbours within a disc of diameter ``gauge_length`` (radius
     ``gauge_length / 2``, the point itself included) are fitted by
     ``u(X) = a + G (X - X_i)`` in the least-squares sense; this is the "virtual strain
     gauge" of point-wise DIC strain estimation (Pan et al., Opt. Eng. 46 (2007) 033601).
+
+    With ``disp_sigma`` the covariance of each gradient is propagated linearly from the
+    displacements' errors, taken independent between points and between the x and y
+    components (Gaussian error propagation of a linear estimator: each fit is
+    ``c = H u`` with ``H = (AᵀWA)⁻¹AᵀW``, so ``Cov(c) = H diag(σ²) Hᵀ``; with
+    ``weighted=True``, ``W = diag(1/σ²)`` and this is ``(AᵀWA)⁻¹``, the weighted normal
+    equations; Press et al., *Numerical Recipes*, 3rd ed., sec. 15.4). The σ is that of the
+    random error only: errors correlated between neighbours (e.g. a shared model error)
+    are not in it.
 
     Parameters
     ----------
@@ -132,10 +157,30 @@ def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
     min_neighbours : int
         Fewest points (including the point itself) in the disc; below it (or when the
         neighbours are collinear) the gradient is NaN.
+    disp_sigma : (N,) or (N, 2) array, optional
+        1σ of each point's displacement (one value for both components, or one per
+        component), in the unit of ``disp``; >= 0. A point with an infinite σ is left out
+        of every fit, as a point with a NaN displacement is (its own gradient is NaN); a
+        NaN σ at a finite displacement raises.
+    weighted : bool
+        With ``disp_sigma``: weight the fit by ``1/σ²`` (needs σ > 0). False (default):
+        the ordinary least-squares fit (the same gradient as without ``disp_sigma``), its
+        covariance from the σ.
 
     Returns
     -------
-    (N, 2, 2) array, NaN where not enough neighbours.
+    G : (N, 2, 2) array, ``G[n, i, j] = ∂u_i/∂X_j`` (dimensionless), NaN where not enough
+        neighbours.
+    G_cov : (N, 4, 4) array, only with ``disp_sigma``
+        Covariance of ``G[n].reshape(4)`` = ``(∂u_x/∂X, ∂u_x/∂Y, ∂u_y/∂X, ∂u_y/∂Y)``
+        (dimensionless², block-diagonal: the x and y components are fitted separately);
+        NaN where ``G`` is.
+
+    Raises
+    ------
+    GeometryError
+        Bad ``gauge_length`` / ``min_neighbours``, shapes that do not match, negative σ,
+        NaN σ at a finite displacement, or σ = 0 with ``weighted=True``.
     """
     from scipy.spatial import cKDTree
 
@@ -147,9 +192,21 @@ def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
     n = len(X)
     G = np.full((n, 2, 2), np.nan)
     ok = np.isfinite(X).all(axis=1) & np.isfinite(u).all(axis=1)
+    with_cov = disp_sigma is not None
+    if weighted and not with_cov:
+        raise GeometryError("weighted=True needs disp_sigma (the weights are 1/σ²)")
+    if with_cov:
+        sg = _disp_sigma(disp_sigma, n)
+        if np.isnan(sg[ok]).any():
+            raise GeometryError(f"disp_sigma is NaN at {int(np.isnan(sg[ok]).any(axis=1).sum())} "
+                                "points with a finite displacement (give inf for an unknown error)")
+        if weighted and np.any(sg[ok] == 0):
+            raise GeometryError("weighted=True needs disp_sigma > 0 (a zero σ is an infinite weight)")
+        ok &= np.isfinite(sg).all(axis=1)
+        cov = np.full((n, 4, 4), np.nan)
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
-        return G
+        return (G, cov) if with_cov else G
     tree = cKDTree(X[idx])
     nbrs = tree.query_ball_point(X[idx], r=0.5 * float(gauge_length))
     for a, nb in zip(idx, nbrs):
@@ -160,9 +217,93 @@ def gradient_local_lsq(pts_ref, disp, gauge_length, min_neighbours=6):
         A = np.column_stack([np.ones(len(j)), D])                 # (m, 3)
         if np.linalg.matrix_rank(A) < 3:
             continue
-        coef, *_ = np.linalg.lstsq(A, u[j], rcond=None)           # (3, 2)
-        G[a] = coef[1:].T
-    return G
+        if not weighted:
+            coef, *_ = np.linalg.lstsq(A, u[j], rcond=None)       # (3, 2)
+            G[a] = coef[1:].T
+        if not with_cov:
+            continue
+        cov[a] = 0.0
+        for c in (0, 1):
+            H = _lsq_operator(A, sg[j, c] if weighted else None)  # (3, m)
+            if weighted:
+                G[a, c] = (H @ u[j, c])[1:]
+            cov[a, 2 * c:2 * c + 2, 2 * c:2 * c + 2] = (H[1:] * sg[j, c] ** 2) @ H[1:].T
+    return (G, cov) if with_cov else G
+
+
+def _lsq_operator(A, sigma=None):
+    """(3, m) linear operator ``H`` of the least-squares fit ``c = H u`` of ``A c ≈ u``
+    (weights ``1/σ²`` with ``sigma``)."""
+    if sigma is None:
+        return np.linalg.pinv(A)
+    w = 1.0 / np.asarray(sigma, float)
+    return np.linalg.pinv(A * w[:, None]) * w[None, :]
+
+
+def strain_jacobian(G, measure="green_lagrange"):
+    """Jacobian of the in-plane strain components with respect to the displacement gradient.
+
+    Rows ``(E_xx, E_yy, E_xy)`` (tensorial shear), columns ``G.reshape(4)`` =
+    ``(∂u_x/∂X, ∂u_x/∂Y, ∂u_y/∂X, ∂u_y/∂Y)``. Green–Lagrange ``E = ½(FᵀF − I)``,
+    ``F = I + G``: ``∂E_ij/∂G_kl = ½(δ_li F_kj + F_ki δ_lj)``; small strain
+    ``ε = ½(G + Gᵀ)``: ``∂ε_ij/∂G_kl = ½(δ_ik δ_jl + δ_jk δ_il)`` (constant).
+
+    Parameters
+    ----------
+    G : (..., 2, 2) array, dimensionless
+    measure : {"green_lagrange", "small"}
+
+    Returns
+    -------
+    (..., 3, 4) array, dimensionless.
+    """
+    G = _check_G(G)
+    if measure not in ("green_lagrange", "small"):
+        raise SemlabError(f"measure must be 'green_lagrange' or 'small', got {measure!r}")
+    F = G + np.eye(2) if measure == "green_lagrange" else np.broadcast_to(np.eye(2), G.shape)
+    d = np.eye(2)
+    J = np.zeros(G.shape[:-2] + (3, 4))
+    for row, (i, j) in enumerate(((0, 0), (1, 1), (0, 1))):
+        for k in range(2):
+            for m in range(2):
+                J[..., row, 2 * k + m] = 0.5 * (d[m, i] * F[..., k, j] + F[..., k, i] * d[m, j])
+    return J
+
+
+def strain_covariance(G, G_cov, measure="green_lagrange"):
+    """First-order (linear) propagation of a gradient's covariance into its strain's.
+
+    ``Cov(E) = J Cov(G) Jᵀ`` with ``J`` of :func:`strain_jacobian` (exact for the small
+    strain, first order in the errors for Green–Lagrange).
+
+    Parameters
+    ----------
+    G : (..., 2, 2) array, dimensionless
+    G_cov : (..., 4, 4) array
+        Covariance of ``G.reshape(..., 4)`` (e.g. from :func:`gradient_local_lsq`).
+    measure : {"green_lagrange", "small"}
+
+    Returns
+    -------
+    (..., 3, 3) covariance of ``(E_xx, E_yy, E_xy)``, dimensionless².
+    """
+    C = np.asarray(G_cov, float)
+    J = strain_jacobian(G, measure)
+    if C.shape != J.shape[:-2] + (4, 4):
+        raise SemlabError(f"G_cov must have shape {J.shape[:-2] + (4, 4)} for G {np.shape(G)}, "
+                          f"got {C.shape}")
+    return J @ C @ np.swapaxes(J, -1, -2)
+
+
+def strain_sigma(G, G_cov, measure="green_lagrange"):
+    """1σ of ``(E_xx, E_yy, E_xy)``: square roots of the diagonal of :func:`strain_covariance`.
+
+    Returns
+    -------
+    (..., 3) array, dimensionless (NaN where ``G`` or ``G_cov`` is).
+    """
+    C = strain_covariance(G, G_cov, measure)
+    return np.sqrt(np.maximum(np.diagonal(C, axis1=-2, axis2=-1), 0.0))
 
 
 def gradient_from_field(ux, uy, spacing_um, window=None, min_points=6):
@@ -406,7 +547,7 @@ DENSE_WINDOW = 7
 
 
 def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
-                       grid_step_px=16, heights=None, progress=False,
+                       grid_step_px=16, heights=None, progress=False, sigma_px=None,
                        dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC,
                        dense_smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
@@ -423,10 +564,36 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
     polished surface) is added.
 
+    With ``sigma_px`` (``Tracks.sigma_px`` of :func:`semlab.tracking.track_reverse`), the 1σ
+    of the sparse local least-squares strain ``E_lsq_sigma`` is propagated from the tracks'
+    errors (:func:`gradient_local_lsq` with ``disp_sigma``, then :func:`strain_sigma`, first
+    order). The displacement of a track is ``xy[-1] − xy[ref_frame]``; the last frame holds
+    the seeds (the reference of the tracking, σ 0) and, with the tracking's direct correction
+    (its default), ``sigma_px[ref_frame]`` is the predicted 1σ of the track's position in
+    ``ref_frame`` matched directly against its seed window in the last frame (larger of the
+    two components, with sized subsets including the subset's model error): the
+    displacement's σ in each component, pixels (times ``pixel_size_um``). Without direct
+    correction it is the σ of the last chained step only, not of the accumulated chain, and
+    would be too small. The points' errors are taken independent, so an error shared by
+    neighbouring tracks (the model error of overlapping subsets, a stage-drift residual) is
+    not in ``E_lsq_sigma``; the fit itself stays unweighted (``E_lsq`` is the same with or
+    without ``sigma_px``, except that tracks with an infinite σ are left out). ``E_tri`` and
+    the dense ``E`` have no σ: the dense grid's subsets overlap (21 px subsets every
+    ``grid_step_px``), so their errors are correlated and the independent-points propagation
+    does not hold.
+
+    Parameters
+    ----------
+    sigma_px : (F, N) array, optional
+        Predicted 1σ of each track's position in each frame relative to the last frame,
+        pixels (``Tracks.sigma_px``). None: ``E_lsq_sigma`` is NaN.
+
     Returns
     -------
     dict of arrays: ``ref_frame``, ``gauge_length_um``, sparse ``pts_px`` (M, 2) last-frame
-    positions, ``E_lsq`` (M, 2, 2), ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
+    positions, ``E_lsq`` (M, 2, 2), ``E_lsq_sigma`` (M, 3) the 1σ of ``E_lsq``'s
+    ``(E_xx, E_yy, E_xy)`` (dimensionless, NaN where ``E_lsq`` is or without ``sigma_px``),
+    ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
     ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
     ``max_shear``, ``zncc``, ``dense_gauge_um``, and ``E_surface`` when heights are given.
 
@@ -465,9 +632,20 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
         density = len(p_ref) / max(span[0] * span[1], 1.0)
         gauge_length_px = 2.0 * np.sqrt(12.0 / (np.pi * density))
     out["gauge_length_um"] = gauge_length_px * s
-    G_lsq = gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s)
+    if sigma_px is None:
+        G_lsq = gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s)
+        E_lsq_sigma = np.full((len(G_lsq), 3), np.nan)
+    else:
+        sig = np.asarray(sigma_px, float)
+        if sig.shape != np.shape(xy)[:2]:
+            raise SemlabError(f"sigma_px must have shape {np.shape(xy)[:2]} (frames, tracks), "
+                              f"got {sig.shape}")
+        G_lsq, G_cov = gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s,
+                                          disp_sigma=sig[ref_frame][ok] * s)
+        E_lsq_sigma = strain_sigma(G_lsq, G_cov)
     G_tri, tri = gradient_from_triangles(p_ref * s, disp_um)
-    out.update(pts_px=p_end, E_lsq=green_lagrange(G_lsq), tri=tri, E_tri=green_lagrange(G_tri))
+    out.update(pts_px=p_end, E_lsq=green_lagrange(G_lsq), E_lsq_sigma=E_lsq_sigma, tri=tri,
+               E_tri=green_lagrange(G_tri))
 
     # dense: subsets on a grid of the last frame, matched into the reference frame
     h, w = frames[-1].shape

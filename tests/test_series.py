@@ -97,3 +97,32 @@ def test_no_strain_is_an_error_of_the_strain_step(small_series, tmp_path, monkey
     assert (tmp_path / "out" / "tracks.csv").is_file()
     with pytest.raises(semlab.StepFailed, match="enough valid tracks"):
         an.strain()
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_run_strain_writes_the_sparse_strain_sigma_of_the_tracks(small_series, tmp_path):
+    """strain.npz holds E_lsq_sigma (M, 3): the tracks' sigma_px in the reference frame
+    propagated through the local least-squares strain; NaN for tracks made without direct
+    correction (whose sigma_px is that of the last chained step only)."""
+    from semlab import strain as st
+
+    r = series.run_tracking(small_series, progress=False, grid_kw={"spacing_px": 16})
+    tr = r.tracks
+    # every estimated step counted valid: this tests the strain step, not the tracking
+    allv = dataclasses.replace(r, tracks=dataclasses.replace(
+        tr, valid=np.isfinite(tr.xy).all(axis=2) & np.isfinite(tr.sigma_px)))
+    S = series.run_strain(small_series, allv)
+    ref = S["ref_frame"]
+    ok = allv.tracks.valid[ref] & allv.tracks.valid[-1]
+    s = r.pixel_size_um
+    G, C = st.gradient_local_lsq(tr.xy[ref][ok] * s, (tr.xy[-1][ok] - tr.xy[ref][ok]) * s,
+                                 S["gauge_length_um"], disp_sigma=tr.sigma_px[ref][ok] * s)
+    expect = st.strain_sigma(G, C)
+    assert np.isfinite(expect).any()
+    series.write_strain_results(S, tmp_path)
+    with np.load(tmp_path / "strain.npz") as z:
+        assert z["E_lsq_sigma"].shape == (int(ok.sum()), 3)
+        assert np.allclose(z["E_lsq_sigma"], expect, equal_nan=True)
+    chained = dataclasses.replace(allv, tracks=dataclasses.replace(
+        allv.tracks, params={**tr.params, "direct_correction": False}))
+    assert np.isnan(series.run_strain(small_series, chained)["E_lsq_sigma"]).all()

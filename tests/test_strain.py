@@ -6,7 +6,8 @@ import pytest
 from semlab.errors import GeometryError, SemlabError
 from semlab.strain import (gradient_from_field, gradient_from_triangles, gradient_local_lsq,
                            green_lagrange, max_shear, principal_strains, small_strain,
-                           strain_history, surface_green_lagrange, triangle_areas)
+                           strain_from_tracks, strain_history, strain_jacobian, strain_sigma,
+                           surface_green_lagrange, triangle_areas)
 
 G_TRUE = np.array([[0.012, -0.004], [0.007, -0.003]])
 
@@ -174,3 +175,147 @@ def test_lsq_too_few_neighbours_gives_nan():
     X = _scatter(50, size=1000.0)
     G = gradient_local_lsq(X, np.zeros_like(X), gauge_length=1.0)
     assert np.isnan(G).all()
+
+
+G_BIG = np.array([[0.05, -0.02], [0.03, -0.04]])   # large enough for the Green–Lagrange terms
+
+
+def _components(E):
+    return np.stack([E[..., 0, 0], E[..., 1, 1], E[..., 0, 1]], axis=-1)
+
+
+def _monte_carlo(X, sigma, gauge, n_draws, weighted, seed=5):
+    """Empirical std of (E_xx, E_yy, E_xy) over ``n_draws`` Gaussian displacement noise draws
+    of the per-point (N, 2) ``sigma`` on the homogeneous field of ``G_BIG``."""
+    rng = np.random.default_rng(seed)
+    u0 = _affine_disp(X, G_BIG)
+    E = []
+    for _ in range(n_draws):
+        u = u0 + rng.normal(size=X.shape) * sigma
+        if weighted:
+            G, _ = gradient_local_lsq(X, u, gauge, disp_sigma=sigma, weighted=True)
+        else:
+            G = gradient_local_lsq(X, u, gauge)
+        E.append(_components(green_lagrange(G)))
+    return np.std(E, axis=0)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_lsq_strain_sigma_matches_monte_carlo(weighted):
+    """Predicted 1σ of each strain component within 20 % of the std of 250 noise draws, with
+    a different σ at every point and per component (heteroscedastic: a single mean σ would
+    miss)."""
+    X = _scatter(40, seed=6, size=60.0)
+    rng = np.random.default_rng(7)
+    sigma = rng.uniform(0.003, 0.03, X.shape)
+    G0, C = gradient_local_lsq(X, _affine_disp(X, G_BIG), 30.0, disp_sigma=sigma,
+                               weighted=weighted)
+    assert C.shape == (40, 4, 4)
+    pred = strain_sigma(G0, C)
+    emp = _monte_carlo(X, sigma, 30.0, 250, weighted)
+    ok = np.isfinite(pred).all(axis=1)
+    assert ok.sum() >= 20 and np.array_equal(ok, np.isfinite(emp).all(axis=1))
+    ratio = pred[ok] / emp[ok]
+    assert np.all(np.abs(ratio - 1) < 0.2), ratio
+    if weighted:  # the 1/σ² weights never do worse than the plain fit
+        _, C_plain = gradient_local_lsq(X, _affine_disp(X, G_BIG), 30.0, disp_sigma=sigma)
+        assert np.all(pred[ok] <= strain_sigma(G0, C_plain)[ok] * (1 + 1e-9))
+
+
+def test_strain_jacobian_is_the_derivative_of_the_strain():
+    """Analytic Jacobian = central finite differences, for both measures; the Green–Lagrange
+    one is not the small-strain one at a 5 % gradient."""
+    h = 1e-6
+    for measure, fn in (("green_lagrange", green_lagrange), ("small", small_strain)):
+        J = strain_jacobian(G_BIG, measure)
+        num = np.zeros((3, 4))
+        for k in range(4):
+            d = np.zeros(4)
+            d[k] = h
+            num[:, k] = (_components(fn(G_BIG + d.reshape(2, 2)))
+                         - _components(fn(G_BIG - d.reshape(2, 2)))) / (2 * h)
+        assert np.abs(J - num).max() < 1e-8
+    assert np.abs(strain_jacobian(G_BIG) - strain_jacobian(G_BIG, "small")).max() > 0.02
+    with pytest.raises(SemlabError, match="measure"):
+        strain_jacobian(G_BIG, "log")
+
+
+def test_lsq_sigma_scales_linearly_and_keeps_the_gradient():
+    X = _scatter(120, seed=8)
+    u = _affine_disp(X, G_TRUE)
+    sigma = np.random.default_rng(9).uniform(0.01, 0.05, len(X))
+    G1, C1 = gradient_local_lsq(X, u, 30.0, disp_sigma=sigma)
+    G3, C3 = gradient_local_lsq(X, u, 30.0, disp_sigma=3 * sigma)
+    assert np.array_equal(G1, gradient_local_lsq(X, u, 30.0), equal_nan=True)
+    assert np.array_equal(G1, G3, equal_nan=True)
+    s1, s3 = strain_sigma(G1, C1), strain_sigma(G3, C3)
+    ok = np.isfinite(s1)
+    assert ok.any() and np.allclose(s3[ok], 3 * s1[ok], rtol=1e-12)
+    # a scalar σ per point is the same σ on both components
+    _, C2 = gradient_local_lsq(X, u, 30.0, disp_sigma=np.column_stack([sigma, sigma]))
+    assert np.allclose(C1, C2, equal_nan=True)
+
+
+def test_lsq_sigma_inf_points_are_left_out_and_nan_sigma_raises():
+    X = _scatter(120, seed=8)
+    u = _affine_disp(X, G_TRUE) + np.random.default_rng(10).normal(0, 0.01, X.shape)
+    sigma = np.full(len(X), 0.01)
+    bad = 17
+    sigma[bad] = np.inf
+    G, C = gradient_local_lsq(X, u, 30.0, disp_sigma=sigma)
+    keep = np.arange(len(X)) != bad
+    G_without, C_without = gradient_local_lsq(X[keep], u[keep], 30.0, disp_sigma=sigma[keep])
+    assert np.isnan(G[bad]).all() and np.isnan(C[bad]).all()
+    assert np.array_equal(G[keep], G_without, equal_nan=True)
+    assert np.array_equal(C[keep], C_without, equal_nan=True)
+    near = np.linalg.norm(X - X[bad], axis=1) < 15
+    near[bad] = False
+    fin = np.isfinite(G[near]).all(axis=(1, 2))      # the inf point is in their discs,
+    assert fin.sum() >= 2                             # yet their σ stays finite
+    assert np.isfinite(strain_sigma(G[near][fin], C[near][fin])).all()
+    # a NaN displacement needs no σ; a NaN σ at a finite displacement is an error
+    u_nan, s_nan = u.copy(), sigma.copy()
+    u_nan[3], s_nan[3] = np.nan, np.nan
+    G_nan, _ = gradient_local_lsq(X, u_nan, 30.0, disp_sigma=s_nan)
+    assert np.isnan(G_nan[3]).all()
+    s_nan[4] = np.nan
+    with pytest.raises(GeometryError, match="NaN"):
+        gradient_local_lsq(X, u_nan, 30.0, disp_sigma=s_nan)
+    with pytest.raises(GeometryError, match=">= 0"):
+        gradient_local_lsq(X, u, 30.0, disp_sigma=-sigma)
+    with pytest.raises(GeometryError, match="shape"):
+        gradient_local_lsq(X, u, 30.0, disp_sigma=sigma[:5])
+    with pytest.raises(GeometryError, match="needs disp_sigma > 0"):
+        gradient_local_lsq(X, u, 30.0, disp_sigma=np.zeros(len(X)), weighted=True)
+    with pytest.raises(GeometryError, match="needs disp_sigma"):
+        gradient_local_lsq(X, u, 30.0, weighted=True)
+
+
+def test_strain_from_tracks_sigma_is_the_reference_frames_track_sigma():
+    """E_lsq_sigma (M, 3) is the propagation of sigma_px[ref_frame] (µm), NaN without it;
+    E_lsq does not change."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(1)
+    f1 = ndimage.gaussian_filter(rng.normal(size=(96, 96)), 1.5)
+    yy, xx = np.mgrid[0:96, 0:96].astype(float)
+    f0 = ndimage.map_coordinates(f1, [yy, 48 + (xx - 48) * 1.01], order=3, mode="nearest")
+    g = np.stack(np.meshgrid(np.arange(20.0, 80, 6), np.arange(20.0, 80, 6)), -1).reshape(-1, 2)
+    xy = np.stack([np.column_stack([48 + (g[:, 0] - 48) / 1.01, g[:, 1]]), g])
+    valid = np.ones(xy.shape[:2], bool)
+    valid[0, 0] = False
+    sig = np.stack([rng.uniform(0.01, 0.04, len(g)), np.zeros(len(g))])
+    kw = dict(pixel_size_um=0.03, ref_frame=0, gauge_length_px=20.0)
+    S = strain_from_tracks([f0, f1], xy, valid, sigma_px=sig, **kw)
+    S0 = strain_from_tracks([f0, f1], xy, valid, **kw)
+    assert S["E_lsq_sigma"].shape == (len(g) - 1, 3)
+    assert np.isnan(S0["E_lsq_sigma"]).all()
+    assert np.array_equal(S["E_lsq"], S0["E_lsq"], equal_nan=True)
+    ok = valid[0]
+    G, C = gradient_local_lsq(xy[0][ok] * 0.03, (xy[1][ok] - xy[0][ok]) * 0.03, 20.0 * 0.03,
+                              disp_sigma=sig[0][ok] * 0.03)
+    assert np.allclose(S["E_lsq_sigma"], strain_sigma(G, C), equal_nan=True)
+    fin = np.isfinite(S["E_lsq_sigma"]).all(axis=1)
+    assert fin.mean() > 0.8 and np.all(S["E_lsq_sigma"][fin] > 0)
+    with pytest.raises(SemlabError, match="sigma_px"):
+        strain_from_tracks([f0, f1], xy, valid, sigma_px=sig[:1], **kw)
