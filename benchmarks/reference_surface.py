@@ -35,7 +35,8 @@ Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen
    ``(r, a)`` and ``(r, b)`` alone (independent errors: the reference positions are the
    exact grid) against their predicted σ, the same check on the all-view points for
    comparison, and, for every group (two-view points included, which no pair can check),
-   the substrate heights above the reference in units of their σ.
+   the substrate heights above the reference in units of their σ, and each point's height
+   against a local quadric through its 3- and 4-view neighbours (the neighbour check).
 """
 
 from __future__ import annotations
@@ -137,6 +138,35 @@ def _robust_sd(u):
     return float(1.4826 * np.median(np.abs(u - np.median(u))))
 
 
+def _neighbour_check(xy, z, zs, nv, radius=24.0, min_nb=8):
+    """Each point's height against a local quadric through its neighbours valid in 3 or more
+    views (itself left out), within ``radius`` pixels, weighted by their σ:
+    ``u = (z − ẑ) / √(σ² + var ẑ)``. A check without truth that also reaches the points valid
+    in two views: a 2-view point whose ``u`` behaves like those of the 3- and 4-view points
+    (which the pair check verifies) is as trustworthy; a wrong match stands out from its
+    neighbours' surface. Neighbours' subsets overlap the point's, so their errors are
+    correlated and ``u`` comes out below 1 for honest σ: compare the groups, not 1.
+    Returns (N,) ``u`` (NaN where fewer than ``min_nb`` neighbours)."""
+    from scipy.spatial import cKDTree
+
+    good = (nv >= 3) & np.isfinite(z) & np.isfinite(zs) & (zs > 0)
+    gi = np.flatnonzero(good)
+    tree = cKDTree(xy[gi])
+    u = np.full(len(z), np.nan)
+    for i, nb in enumerate(tree.query_ball_point(xy, radius)):
+        j = gi[np.asarray(nb, int)]
+        j = j[j != i]
+        if len(j) < min_nb or not np.isfinite(z[i]) or not zs[i] > 0:
+            continue
+        d = (xy[j] - xy[i]) / radius
+        A = np.column_stack([np.ones(len(j)), d, d[:, 0] ** 2, d[:, 0] * d[:, 1], d[:, 1] ** 2])
+        w = 1.0 / zs[j]
+        cf, *_ = np.linalg.lstsq(A * w[:, None], z[j] * w, rcond=None)
+        cov = np.linalg.pinv((A * w[:, None]).T @ (A * w[:, None]))
+        u[i] = (z[i] - cf[0]) / np.sqrt(zs[i] ** 2 + cov[0, 0])
+    return u
+
+
 def _fewer_views(m, tilt, ref, ref_view, ref_index):
     """Points valid in the reference and at least one other view (``MatchResult.seen_in``):
     coverage, and their error bars checked without truth. Pairs sharing only the reference
@@ -201,6 +231,19 @@ def _fewer_views(m, tilt, ref, ref_view, ref_index):
         print(f"| substrate height above the reference / σ, valid in {k_views} views | "
               f"substrate | {sel.sum()} | {_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
               f"{np.mean(np.abs(u) <= 2):.0%} |")
+    un = _neighbour_check(P[:, ref_view], z, zs, nv)
+    print("\n| neighbour check: height − local quadric of the 3/4-view neighbours (24 px), / σ "
+          "| region | points | robust SD | within 1σ | within 2σ | beyond 4σ |")
+    print("|---|---|---|---|---|---|---|")
+    for k_views in (2, 3, 4):
+        for name, reg in (("grain", rr < 1.0), ("substrate", rr > SUBSTRATE_R)):
+            sel = reg & (nv == k_views) & np.isfinite(un)
+            if sel.sum() < 10:
+                continue
+            a = un[sel]
+            print(f"| valid in {k_views} views | {name} | {sel.sum()} | {_robust_sd(a):.2f} | "
+                  f"{np.mean(np.abs(a) <= 1):.0%} | {np.mean(np.abs(a) <= 2):.0%} | "
+                  f"{np.mean(np.abs(a) > 4):.1%} |")
     return P[:, ref_view], z, np.isin(s.source_index, np.asarray(ref_index)[ref.inliers])
 
 
