@@ -234,6 +234,8 @@ def strain_history(history, cycles=None, ax=None):
     Parameters
     ----------
     history : dict with any of ``"exx"``, ``"eyy"``, ``"exy"``: (F,) arrays
+        With ``"exx_sigma"`` etc. (the 1σ of each frame's mean strain, see
+        :func:`semlab.strain.strain_history`), each point gets its ±1σ error bar.
     cycles : (F,) array, optional
     """
     plt = _plt()
@@ -241,9 +243,20 @@ def strain_history(history, cycles=None, ax=None):
         _, ax = plt.subplots(figsize=(6, 3.8))
     n = len(next(iter(history.values())))
     x = np.arange(n) if cycles is None else np.asarray(cycles)
+    with_sigma = False
     for k in ("exx", "eyy", "exy"):
-        if k in history:
+        if k not in history:
+            continue
+        sd = history.get(f"{k}_sigma")
+        if sd is not None and np.isfinite(sd).any():
+            with_sigma = True
+            ax.errorbar(x, history[k], yerr=np.where(np.isfinite(sd), sd, 0.0), fmt="o-",
+                        capsize=3, label=k)
+        else:
             ax.plot(x, history[k], "o-", label=k)
+    if with_sigma:
+        ax.set_title("error bars: ±1σ of the mean strain (track errors)",
+                     fontsize=REPORT_FONTSIZE)
     ax.set_xlabel("cycles" if cycles is not None else "frame (0 = earliest)",
                   fontsize=REPORT_FONTSIZE)
     ax.set_ylabel("mean strain relative to the end (–)", fontsize=REPORT_FONTSIZE)

@@ -261,12 +261,17 @@ def tracking_strain_history(tracks, cycles, pixel_size_um):
 
     The last frame is the reference here because every track is valid in it; the strain of
     frame f relative to the end is the deformation still to come, plotted against cycles.
+    With the tracking's direct correction (its default) the history has ``exx_sigma``,
+    ``eyy_sigma``, ``exy_sigma``, the 1σ of each frame's mean strain from the tracks'
+    ``sigma_px[f]`` (:func:`semlab.strain.strain_history`); NaN without it.
     """
     from . import strain as st
 
     cyc = np.arange(tracks.n_frames, dtype=float) if cycles is None else np.asarray(cycles, float)
+    direct = tracks.params.get("direct_correction", True)
+    sig = tracks.sigma_px if direct else np.full(tracks.sigma_px.shape, np.nan)
     return st.strain_history(tracks.xy, cyc, valid=tracks.valid, ref_frame=tracks.n_frames - 1,
-                             pixel_size_um=pixel_size_um)
+                             pixel_size_um=pixel_size_um, sigma_px=sig)
 
 
 def write_tracking_results(result, out_dir, overwrite=False):

@@ -26,6 +26,7 @@ __all__ = [
     "strain_jacobian",
     "strain_covariance",
     "strain_sigma",
+    "mean_gradient_cov",
     "gradient_from_field",
     "small_strain",
     "green_lagrange",
@@ -306,6 +307,47 @@ def strain_sigma(G, G_cov, measure="green_lagrange"):
     return np.sqrt(np.maximum(np.diagonal(C, axis1=-2, axis2=-1), 0.0))
 
 
+def mean_gradient_cov(pts_ref, triangles, weights, disp_sigma):
+    """Covariance of the weighted mean gradient of constant-strain triangles.
+
+    The mean ``Ḡ = Σ_t w_t G_t / Σ_t w_t`` of :func:`gradient_from_triangles` is linear in the
+    vertex displacements, ``Ḡ[i, :] = Σ_v u_v[i] b_v``, so with independent point errors
+    ``Cov(Ḡ[i, :]) = Σ_v σ_{v,i}² b_v b_vᵀ`` exactly (the x and y rows independent).
+
+    Parameters
+    ----------
+    pts_ref : (N, 2) array of reference positions (x, y)
+    triangles : (T, 3) int array of indices into ``pts_ref`` (from :func:`gradient_from_triangles`)
+    weights : (T,) array, e.g. :func:`triangle_areas`
+    disp_sigma : (N,) or (N, 2) array
+        1σ of each point's displacement, in the unit of the displacements (>= 0; only the
+        triangles' vertices need to be finite).
+
+    Returns
+    -------
+    (4, 4) covariance of ``Ḡ.reshape(4)`` (dimensionless²; NaN if a vertex's σ is not
+    finite).
+    """
+    X = np.asarray(pts_ref, float)
+    T = np.asarray(triangles, int)
+    w = np.asarray(weights, float)
+    sg = _disp_sigma(disp_sigma, len(X))
+    P = X[T]
+    dX = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], axis=2)      # (T, 2, 2) columns
+    Minv = np.linalg.inv(dX)                                             # rows: ∂/∂(U1-U0), ∂/∂(U2-U0)
+    c = np.stack([-(Minv[:, 0] + Minv[:, 1]), Minv[:, 0], Minv[:, 1]], axis=1)   # (T, 3, 2)
+    b = np.zeros((len(X), 2))
+    np.add.at(b, T.ravel(), (c * (w / w.sum())[:, None, None]).reshape(-1, 2))
+    used = np.unique(T)
+    if not np.isfinite(sg[used]).all():
+        return np.full((4, 4), np.nan)
+    cov = np.zeros((4, 4))
+    for i in (0, 1):
+        bb = b[used]
+        cov[2 * i:2 * i + 2, 2 * i:2 * i + 2] = (bb * sg[used, i, None] ** 2).T @ bb
+    return cov
+
+
 def gradient_from_field(ux, uy, spacing_um, window=None, min_points=6):
     """Displacement gradient of dense fields on a regular grid.
 
@@ -455,7 +497,7 @@ def max_shear(E):
 
 def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_size_um=None,
                    method="triangles", measure="green_lagrange", gauge_length=None,
-                   min_points=3):
+                   min_points=3, sigma_px=None):
     """Mean in-plane strain of the tracked area in every frame (a strain-vs-cycles curve).
 
     The reference configuration is frame ``ref_frame`` (default the earliest, 0). In each
@@ -481,11 +523,21 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
         Gauge diameter (pixels) for ``method="lsq"`` (required there).
     min_points : int
         Frames with fewer common valid points get NaN.
+    sigma_px : (F, N) array, optional
+        1σ of each track's position in each frame relative to ``ref_frame``, pixels (with
+        ``ref_frame`` the last frame, ``Tracks.sigma_px``): the σ of the displacement from
+        ``ref_frame`` to frame f is ``sigma_px[f]``. With ``method="triangles"`` gives
+        ``exx_sigma``, ``eyy_sigma``, ``exy_sigma``: the 1σ of the mean strain, propagated
+        exactly to the mean gradient (:func:`mean_gradient_cov`, points independent) and to
+        first order to the strain; the mean over hundreds of tracks makes it small, and
+        errors shared by the tracks (drift, bias) are not in it. NaN with ``method="lsq"``
+        (overlapping gauges: the mean's covariance would need their cross-covariances).
 
     Returns
     -------
     dict of (F,) arrays: ``cycles``, ``exx``, ``eyy``, ``exy``, ``e1``, ``e2``,
-    ``angle_deg`` (of the mean tensor), ``n_points``.
+    ``angle_deg`` (of the mean tensor), ``n_points``; with ``sigma_px`` also ``exx_sigma``,
+    ``eyy_sigma``, ``exy_sigma`` (dimensionless).
     """
     xy = np.asarray(tracks_xy_per_frame, float)
     if xy.ndim != 3 or xy.shape[2] != 2:
@@ -509,7 +561,13 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
     r = int(ref_frame) % F
     s = 1.0 if pixel_size_um is None else float(pixel_size_um)
     strain_fn = green_lagrange if measure == "green_lagrange" else small_strain
-    out = {k: np.full(F, np.nan) for k in ("exx", "eyy", "exy", "e1", "e2", "angle_deg")}
+    keys = ("exx", "eyy", "exy", "e1", "e2", "angle_deg")
+    if sigma_px is not None:
+        sig = np.asarray(sigma_px, float)
+        if sig.shape != (F, N):
+            raise SemlabError(f"sigma_px must have shape {(F, N)}, got {sig.shape}")
+        keys += ("exx_sigma", "eyy_sigma", "exy_sigma")
+    out = {k: np.full(F, np.nan) for k in keys}
     out["n_points"] = np.zeros(F, int)
     for f in range(F):
         use = ok[f] & ok[r]
@@ -523,6 +581,10 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
                 G, T = gradient_from_triangles(X, u)
                 w = triangle_areas(X, T)
                 Gm = (G * w[:, None, None]).sum(axis=0) / w.sum()
+                if sigma_px is not None:
+                    C = mean_gradient_cov(X, T, w, sig[f, use] * s)
+                    sd = strain_sigma(Gm, C, measure)
+                    out["exx_sigma"][f], out["eyy_sigma"][f], out["exy_sigma"][f] = sd
             else:
                 G = gradient_local_lsq(X, u, gauge_length * s)
                 Gm = np.nanmean(G, axis=0) if np.isfinite(G).any() else np.full((2, 2), np.nan)

@@ -230,6 +230,15 @@ def test_strain_maps_directions_and_history():
     ax = plots.strain_history({"exx": [0.0, 0.001, 0.002], "eyy": [0, 0, 0.001]},
                               cycles=[0, 1000, 2000])
     assert ax.get_xlabel() == "cycles" and len(ax.lines) == 2
+    assert not ax.containers and ax.get_title() == ""
+    # with the history's 1σ: a ±1σ error bar at every point (none where σ is NaN)
+    ax = plots.strain_history({"exx": [0.0, 0.001, 0.002], "exx_sigma": [0.0, 1e-4, np.nan],
+                               "eyy": [0, 0, 0.001], "eyy_sigma": [np.nan] * 3},
+                              cycles=[0, 1000, 2000])
+    (bars,) = ax.containers
+    seg = bars.lines[2][0].get_segments()
+    assert np.allclose([s[1, 1] - s[0, 1] for s in seg], [0.0, 2e-4, 0.0])
+    assert "1σ" in ax.get_title()
 
 
 def test_error_histograms_share_bins_in_nm():

@@ -123,6 +123,11 @@ def test_run_strain_writes_the_sparse_strain_sigma_of_the_tracks(small_series, t
     with np.load(tmp_path / "strain.npz") as z:
         assert z["E_lsq_sigma"].shape == (int(ok.sum()), 3)
         assert np.allclose(z["E_lsq_sigma"], expect, equal_nan=True)
+        # the history's 1σ of each frame's mean strain: 0 in the last frame (the reference)
+        hs = z["history_exx_sigma"]
+        assert hs.shape == (3,) and hs[-1] == 0 and np.isfinite(hs).all() and hs[0] > 0
     chained = dataclasses.replace(allv, tracks=dataclasses.replace(
         allv.tracks, params={**tr.params, "direct_correction": False}))
-    assert np.isnan(series.run_strain(small_series, chained)["E_lsq_sigma"]).all()
+    S_chained = series.run_strain(small_series, chained)
+    assert np.isnan(S_chained["E_lsq_sigma"]).all()
+    assert np.isnan(S_chained["history"]["exx_sigma"]).all()

@@ -5,8 +5,8 @@ import pytest
 
 from semlab.errors import GeometryError, SemlabError
 from semlab.strain import (gradient_from_field, gradient_from_triangles, gradient_local_lsq,
-                           green_lagrange, max_shear, principal_strains, small_strain,
-                           strain_from_tracks, strain_history, strain_jacobian, strain_sigma,
+                           green_lagrange, max_shear, mean_gradient_cov, principal_strains,
+                           small_strain, strain_from_tracks, strain_history, strain_jacobian, strain_sigma,
                            surface_green_lagrange, triangle_areas)
 
 G_TRUE = np.array([[0.012, -0.004], [0.007, -0.003]])
@@ -319,3 +319,37 @@ def test_strain_from_tracks_sigma_is_the_reference_frames_track_sigma():
     assert fin.mean() > 0.8 and np.all(S["E_lsq_sigma"][fin] > 0)
     with pytest.raises(SemlabError, match="sigma_px"):
         strain_from_tracks([f0, f1], xy, valid, sigma_px=sig[:1], **kw)
+
+
+def test_strain_history_sigma_matches_monte_carlo():
+    """The 1σ of each frame's mean (triangles) strain within 20 % of the std of 300 noise
+    draws; 0 in the reference frame; NaN for the lsq method and for a non-finite σ."""
+    rng = np.random.default_rng(11)
+    X = _scatter(60, seed=12)
+    xy = np.stack([X + _affine_disp(X, G_BIG * k / 2, t=(0, 0)) for k in range(3)])
+    sig = np.stack([rng.uniform(0.01, 0.05, 60), rng.uniform(0.005, 0.02, 60), np.zeros(60)])
+    h0 = strain_history(xy, [0, 1, 2], ref_frame=2, sigma_px=sig)
+    draws = []
+    for _ in range(300):
+        noisy = xy + rng.normal(size=xy.shape) * sig[:, :, None]
+        h = strain_history(noisy, [0, 1, 2], ref_frame=2)
+        draws.append([h["exx"], h["eyy"], h["exy"]])
+    emp = np.std(draws, axis=0)                                   # (3 components, 3 frames)
+    pred = np.array([h0["exx_sigma"], h0["eyy_sigma"], h0["exy_sigma"]])
+    assert np.all(pred[:, 2] == 0)
+    ratio = pred[:, :2] / emp[:, :2]
+    assert np.all(np.abs(ratio - 1) < 0.2), ratio
+    # the direct covariance of the mean gradient, as used there
+    G, T = gradient_from_triangles(xy[2], xy[0] - xy[2])
+    w = triangle_areas(xy[2], T)
+    C = mean_gradient_cov(xy[2], T, w, sig[0])
+    Gm = (G * w[:, None, None]).sum(axis=0) / w.sum()
+    assert np.isclose(strain_sigma(Gm, C)[0], h0["exx_sigma"][0], rtol=1e-12)
+    assert np.isnan(strain_history(xy, [0, 1, 2], ref_frame=2, method="lsq", gauge_length=40.0,
+                                   sigma_px=sig)["exx_sigma"]).all()
+    sig[0, 5] = np.inf
+    h = strain_history(xy, [0, 1, 2], ref_frame=2, sigma_px=sig)
+    assert np.isnan(h["exx_sigma"][0]) and np.isfinite(h["exx_sigma"][1])
+    assert "exx_sigma" not in strain_history(xy, [0, 1, 2], ref_frame=2)
+    with pytest.raises(SemlabError, match="sigma_px"):
+        strain_history(xy, [0, 1, 2], sigma_px=sig[:2])
