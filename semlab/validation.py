@@ -2,7 +2,9 @@
 
 Heights are defined relative to a reference plane, which is a convention (each method fits
 its own), so height errors are measured after removing the least-squares plane of the
-difference ``z_est − z_true``: what is left is the error in the relief itself.
+difference ``z_est − z_true``: what is left is the error in the relief itself. The plane is a
+gauge, so it may also be fitted robustly (``plane="robust"``: Huber IRLS), which one gross
+error cannot tilt.
 """
 
 from __future__ import annotations
@@ -42,7 +44,48 @@ def true_height_at(truth, pts_view0):
     return ndimage.map_coordinates(z, [p[:, 1], p[:, 0]], order=3, mode="nearest")
 
 
-def height_errors(z_est_um, z_true_um, xy=None):
+HUBER_K = 1.345  # Huber threshold in robust σ (1.4826·MAD) units: 95 % efficiency at a Gaussian
+
+
+def gauge_plane(A, d, plane="lsq", n_iter=50, tol=1e-10):
+    """Coefficients of the gauge (plane or mean) fitted to the error ``d``.
+
+    Parameters
+    ----------
+    A : (N, P) design matrix (``[x, y, 1]`` for a plane, ``[1]`` for the mean)
+    d : (N,) error (any unit)
+    plane : ``"lsq"`` (unweighted least squares) or ``"robust"`` (iteratively reweighted least
+        squares with Huber weights ``min(1, k / |r / s|)``, ``k`` = :data:`HUBER_K`, on the
+        residual ``r`` scaled by its ``s`` = 1.4826·MAD, re-estimated every iteration; started
+        from the least-squares fit; convex, so one gross error cannot tilt it far)
+    n_iter, tol : at most ``n_iter`` reweightings, stopped when the coefficients move by less
+        than ``tol`` times the residual scale
+
+    Returns
+    -------
+    (P,) coefficients
+    """
+    if plane not in ("lsq", "robust"):
+        raise SemlabError(f"plane must be 'lsq' or 'robust', got {plane!r}")
+    coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+    if plane == "lsq":
+        return coef
+    for _ in range(n_iter):
+        r = d - A @ coef
+        s = 1.4826 * np.median(np.abs(r - np.median(r)))
+        if not s > 0:
+            break
+        u = np.abs(r) / (HUBER_K * s)
+        sw = np.sqrt(np.where(u > 1, 1.0 / np.maximum(u, 1e-300), 1.0))
+        new, *_ = np.linalg.lstsq(A * sw[:, None], d * sw, rcond=None)
+        step = np.max(np.abs(new - coef))
+        coef = new
+        if step < tol * s:
+            break
+    return coef
+
+
+def height_errors(z_est_um, z_true_um, xy=None, plane="lsq"):
     """Height error after removing the best-fit plane of the difference.
 
     Parameters
@@ -50,6 +93,8 @@ def height_errors(z_est_um, z_true_um, xy=None):
     z_est_um, z_true_um : (N,) arrays
     xy : (N, 2) array, optional
         Positions (any unit) used for the plane; without them only the mean is removed.
+    plane : ``"lsq"`` (default: unweighted least squares) or ``"robust"`` (Huber IRLS,
+        :func:`gauge_plane`): the gauge removed, the same for any method scored with it
 
     Returns
     -------
@@ -63,11 +108,10 @@ def height_errors(z_est_um, z_true_um, xy=None):
     d = ze - zt
     if xy is not None:
         xy = np.asarray(xy, float).reshape(-1, 2)
-        A = np.column_stack([xy[ok], np.ones(ok.sum())])
-        coef, *_ = np.linalg.lstsq(A, d[ok], rcond=None)
-        d = d - np.column_stack([xy, np.ones(len(xy))]) @ coef
+        A = np.column_stack([xy, np.ones(len(xy))])
     else:
-        d = d - np.mean(d[ok])
+        A = np.ones((len(d), 1))
+    d = d - A @ gauge_plane(A[ok], d[ok], plane)
     e = np.where(ok, d, np.nan)
     a = np.abs(e[ok])
     return {"err_um": e, "rmse_um": float(np.sqrt(np.mean(e[ok] ** 2))), "mae_um": float(a.mean()),
