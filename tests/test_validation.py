@@ -36,3 +36,32 @@ def test_true_heights_and_tracks_match_truth_points(small_experiment_master):
         assert np.median(np.hypot(*(pos[n] - true_n).T)) < 0.01
     with pytest.raises(SemlabError, match="no truth"):
         validation.true_height_at(root / "end_state", p0)
+
+
+def test_robust_gauge_plane_ignores_gross_errors():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (200, 2))
+    zt = rng.normal(0, 0.1, 200)
+    sd = 0.004
+    ze = zt + 0.02 * xy[:, 0] - 0.01 * xy[:, 1] + 0.3 + rng.normal(0, sd, 200)
+    bad = np.argsort(xy[:, 0])[-4:]  # 4 gross errors at one edge: they tilt an lsq plane
+    zb = ze.copy()
+    zb[bad] += 1.0
+    inl = np.ones(200, bool)
+    inl[bad] = False
+    # the right answer: the plane of the inliers alone
+    ref = validation.height_errors(ze[inl], zt[inl], xy[inl])["err_um"]
+    lsq = validation.height_errors(zb, zt, xy)["err_um"][inl]
+    rob = validation.height_errors(zb, zt, xy, plane="robust")["err_um"][inl]
+    assert np.max(np.abs(rob - ref)) < 0.25 * sd
+    assert np.max(np.abs(lsq - ref)) > 10 * sd
+    # without gross errors the robust plane is the lsq plane up to a fraction of the noise
+    c_lsq = validation.height_errors(ze, zt, xy)
+    c_rob = validation.height_errors(ze, zt, xy, plane="robust")
+    assert np.max(np.abs(c_rob["err_um"] - c_lsq["err_um"])) < 0.1 * sd
+    assert c_lsq["rmse_um"] <= c_rob["rmse_um"] < 1.001 * c_lsq["rmse_um"]
+    # without positions the robust gauge is a robust mean
+    m = validation.height_errors(zb, zt, plane="robust")["err_um"]
+    assert abs(np.median(m[inl])) < 0.1 * np.std(ze - zt)
+    with pytest.raises(SemlabError, match="plane"):
+        validation.height_errors(ze, zt, xy, plane="median")
