@@ -1,6 +1,6 @@
 """Accuracy matrix: heights over texture regime × noise × tilt pair × method, one table.
 
-Run:  python benchmarks/accuracy_matrix.py            # full matrix (~20-30 min on 2 cores)
+Run:  python benchmarks/accuracy_matrix.py            # full matrix (394 s on an idle 2-core machine, 2026-12-03)
       python benchmarks/accuracy_matrix.py --quick    # 3 small cells (< 3 min)
       python benchmarks/accuracy_matrix.py --sets clicks \
           --cells polished/realistic/-5/5,real:fei/realistic/0/8   # some cells, clicks only
