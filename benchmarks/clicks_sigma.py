@@ -8,8 +8,10 @@ Run:  python benchmarks/clicks_sigma.py real:fei/low/0/8,real:quartz/realistic/0
 
 Default mode: for each cell and seed (the accuracy matrix's scenes, 384×512 px, 50 clicks)
 the refined clicks with each of :data:`VARIANTS`, scored as ``accuracy_matrix.py`` scores
-them: height RMSE (nm), points, fractions within 1σ / 2σ, and ECC 15 px at the same points.
-Prints one line per cell.
+them: height RMSE (nm), points, fractions within 1σ / 2σ, and ECC 15 px at the same points,
+under the least-squares plane of the error and in parentheses the robust (Huber) gauge plane
+(``validation.height_errors(plane="robust")``, as the matrix's second tables). Prints one line
+per cell.
 
 ``--diagnose``: the default refined clicks (``target_sigma_px=0.05``), and per click the
 height error against the truth (plane of the error removed, as the matrix scores it) in
@@ -75,7 +77,9 @@ def compare(cells, seeds):
                     ecc = am.score(exp, am.reference_matches(v0, v1, sh.pts[:, 0], flows)
                                    ["ECC 15px"], tilts)
                     line += (f" | {name}: {r['rmse']:5.1f} nm N {r['n']} within 1σ/2σ "
-                             f"{r['in1']:.2f}/{r['in2']:.2f} ECC {ecc['rmse']:5.1f}")
+                             f"{r['in1']:.2f}/{r['in2']:.2f} ECC {ecc['rmse']:5.1f}"
+                             f" (robust gauge: {r['rmse_rob']:5.1f} nm, {r['in1_rob']:.2f}/"
+                             f"{r['in2_rob']:.2f}, ECC {ecc['rmse_rob']:5.1f})")
                 print(line, flush=True)
 
 
