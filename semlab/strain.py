@@ -27,6 +27,7 @@ __all__ = [
     "strain_covariance",
     "strain_sigma",
     "mean_gradient_cov",
+    "triangle_gradient_cov",
     "gradient_from_field",
     "small_strain",
     "green_lagrange",
@@ -307,6 +308,47 @@ def strain_sigma(G, G_cov, measure="green_lagrange"):
     return np.sqrt(np.maximum(np.diagonal(C, axis1=-2, axis2=-1), 0.0))
 
 
+def _triangle_coefficients(X, T):
+    """(T, 3, 2) ``c``: each triangle's gradient row ``G_t[i, :] = Σ_v u_{v,i} c[t, v]`` over
+    its three vertices (the linear triangle of :func:`gradient_from_triangles`)."""
+    P = X[T]
+    dX = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], axis=2)      # (T, 2, 2) columns
+    Minv = np.linalg.inv(dX)                                             # rows: ∂/∂(U1-U0), ∂/∂(U2-U0)
+    return np.stack([-(Minv[:, 0] + Minv[:, 1]), Minv[:, 0], Minv[:, 1]], axis=1)
+
+
+def triangle_gradient_cov(pts_ref, triangles, disp_sigma):
+    """Covariance of each constant-strain triangle's gradient.
+
+    A triangle's gradient is linear in its three vertices' displacements,
+    ``G_t[i, :] = Σ_v u_{v,i} c_v``, so with independent point errors
+    ``Cov(G_t[i, :]) = Σ_v σ_{v,i}² c_v c_vᵀ`` exactly (the x and y rows independent).
+    Neighbouring triangles share vertices, so their errors are correlated.
+
+    Parameters
+    ----------
+    pts_ref : (N, 2) array of reference positions (x, y)
+    triangles : (T, 3) int array of indices into ``pts_ref`` (from :func:`gradient_from_triangles`)
+    disp_sigma : (N,) or (N, 2) array
+        1σ of each point's displacement, in the unit of the displacements (>= 0).
+
+    Returns
+    -------
+    (T, 4, 4) covariance of ``G_t.reshape(4)`` (dimensionless²; NaN for a triangle with a
+    vertex whose σ is not finite).
+    """
+    X = np.asarray(pts_ref, float)
+    T = np.asarray(triangles, int)
+    sg = _disp_sigma(disp_sigma, len(X))[T]                             # (T, 3, 2)
+    c = _triangle_coefficients(X, T)                                      # (T, 3, 2)
+    cov = np.zeros((len(T), 4, 4))
+    for i in (0, 1):
+        cov[:, 2 * i:2 * i + 2, 2 * i:2 * i + 2] = np.einsum("tvk,tv,tvl->tkl", c,
+                                                             sg[:, :, i] ** 2, c)
+    cov[~np.isfinite(sg).all(axis=(1, 2))] = np.nan
+    return cov
+
+
 def mean_gradient_cov(pts_ref, triangles, weights, disp_sigma):
     """Covariance of the weighted mean gradient of constant-strain triangles.
 
@@ -332,10 +374,7 @@ def mean_gradient_cov(pts_ref, triangles, weights, disp_sigma):
     T = np.asarray(triangles, int)
     w = np.asarray(weights, float)
     sg = _disp_sigma(disp_sigma, len(X))
-    P = X[T]
-    dX = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], axis=2)      # (T, 2, 2) columns
-    Minv = np.linalg.inv(dX)                                             # rows: ∂/∂(U1-U0), ∂/∂(U2-U0)
-    c = np.stack([-(Minv[:, 0] + Minv[:, 1]), Minv[:, 0], Minv[:, 1]], axis=1)   # (T, 3, 2)
+    c = _triangle_coefficients(X, T)
     b = np.zeros((len(X), 2))
     np.add.at(b, T.ravel(), (c * (w / w.sum())[:, None, None]).reshape(-1, 2))
     used = np.unique(T)
@@ -639,8 +678,9 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     would be too small. The points' errors are taken independent, so an error shared by
     neighbouring tracks (the model error of overlapping subsets, a stage-drift residual) is
     not in ``E_lsq_sigma``; the fit itself stays unweighted (``E_lsq`` is the same with or
-    without ``sigma_px``, except that tracks with an infinite σ are left out). ``E_tri`` and
-    the dense ``E`` have no σ: the dense grid's subsets overlap (21 px subsets every
+    without ``sigma_px``, except that tracks with an infinite σ are left out). ``E_tri_sigma``
+    is the same for each triangle, exact to the gradient (:func:`triangle_gradient_cov`)
+    and first order to the strain. The dense ``E`` has no σ: the dense grid's subsets overlap (21 px subsets every
     ``grid_step_px``), so their errors are correlated and the independent-points propagation
     does not hold. On the uniform-strain benchmark (``benchmarks/strain_accuracy.py``,
     ``benchmarks/results/strain_sigma.md``) the σ holds with sized subsets (RMS error/σ
@@ -658,7 +698,7 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     dict of arrays: ``ref_frame``, ``gauge_length_um``, sparse ``pts_px`` (M, 2) last-frame
     positions, ``E_lsq`` (M, 2, 2), ``E_lsq_sigma`` (M, 3) the 1σ of ``E_lsq``'s
     ``(E_xx, E_yy, E_xy)`` (dimensionless, NaN where ``E_lsq`` is or without ``sigma_px``),
-    ``tri`` (T, 3), ``E_tri`` (T, 2, 2); dense ``grid_x_px``,
+    ``tri`` (T, 3), ``E_tri`` (T, 2, 2), ``E_tri_sigma`` (T, 3) likewise; dense ``grid_x_px``,
     ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
     ``max_shear``, ``zncc``, ``dense_gauge_um``, and ``E_surface`` when heights are given.
 
@@ -718,8 +758,13 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
                                           disp_sigma=sig[ref_frame][ok] * s)
         E_lsq_sigma = strain_sigma(G_lsq, G_cov)
     G_tri, tri = gradient_from_triangles(p_ref * s, disp_um)
+    if sigma_px is None:
+        E_tri_sigma = np.full((len(G_tri), 3), np.nan)
+    else:
+        E_tri_sigma = strain_sigma(G_tri, triangle_gradient_cov(p_ref * s, tri,
+                                                                sig[ref_frame][ok] * s))
     out.update(pts_px=p_end, E_lsq=green_lagrange(G_lsq), E_lsq_sigma=E_lsq_sigma, tri=tri,
-               E_tri=green_lagrange(G_tri))
+               E_tri=green_lagrange(G_tri), E_tri_sigma=E_tri_sigma)
 
     # dense: subsets on a grid of the last frame, matched into the reference frame
     h, w = frames[-1].shape
