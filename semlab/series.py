@@ -247,13 +247,20 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
             zi = griddata(pz, zz, (x, y), method="linear")
             return np.where(np.isfinite(zi), zi, griddata(pz, zz, (x, y), method="nearest"))
     frames = exp.frames(progress=progress)
-    direct = tracks.params.get("direct_correction", True)
     out = st.strain_from_tracks(frames, tracks.xy, tracks.valid, tr.pixel_size_um,
                                 int(enough[0]), gauge_length_px=gauge_length_px,
                                 heights=heights, progress=progress,
-                                sigma_px=tracks.sigma_px if direct else None)
+                                sigma_px=_position_sigma(tracks))
     out["history"] = tracking_strain_history(tracks, exp.series.cycles, tr.pixel_size_um)
     return out
+
+
+def _position_sigma(tracks):
+    """(F, N) 1σ of each track's position relative to its seed in the last frame, pixels:
+    ``Tracks.sigma_px`` when the tracking matched every frame directly against the last one
+    (its direct correction, the default); None otherwise, where ``sigma_px`` is the σ of the
+    last chained step only, not of the accumulated chain."""
+    return tracks.sigma_px if tracks.params.get("direct_correction", True) else None
 
 
 def tracking_strain_history(tracks, cycles, pixel_size_um):
@@ -268,8 +275,8 @@ def tracking_strain_history(tracks, cycles, pixel_size_um):
     from . import strain as st
 
     cyc = np.arange(tracks.n_frames, dtype=float) if cycles is None else np.asarray(cycles, float)
-    direct = tracks.params.get("direct_correction", True)
-    sig = tracks.sigma_px if direct else np.full(tracks.sigma_px.shape, np.nan)
+    sig = _position_sigma(tracks)
+    sig = np.full(tracks.sigma_px.shape, np.nan) if sig is None else sig
     return st.strain_history(tracks.xy, cyc, valid=tracks.valid, ref_frame=tracks.n_frames - 1,
                              pixel_size_um=pixel_size_um, sigma_px=sig)
 
