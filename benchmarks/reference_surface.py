@@ -1,11 +1,11 @@
 """Reference surface and tilt checks: a synthetic tall object, and the real pollen_pot1 series.
 
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
-                                            [--backward-sigma-p=P] [--total-error]
+                                            [--backward-sigma-p=P] [--total-error] [--fixed]
       (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure;
       --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1;
       --total-error sizes its grid by the total error: ``target_sigma_px=0,
-      curvature_neighbours=1``)
+      curvature_neighbours=1``; --fixed: fixed subsets, ``target_sigma_px=None``)
 
 1. Synthetic: a textured bump 6 µm tall, ``6 (1 - r²/R²)²`` with R = 14 µm, off the
    centre of a flat substrate, seen at ±9° at 0.03 µm/px, 1024×768 px (the texture and
@@ -281,8 +281,8 @@ def pollen():
     ref_view = 0
     t = time.perf_counter()
     bsp = [float(a.split("=", 1)[1]) for a in sys.argv if a.startswith("--backward-sigma-p=")]
-    sized = dict(target_sigma_px=0.0, curvature_neighbours=1) if "--total-error" in sys.argv \
-        else {}
+    sized = (dict(target_sigma_px=0.0, curvature_neighbours=1) if "--total-error" in sys.argv
+             else dict(target_sigma_px=None) if "--fixed" in sys.argv else {})
     m = auto_match(ims, ref_view=ref_view, progress=False,
                    backward_sigma_p=bsp[0] if bsp else None, **sized)
     dt = time.perf_counter() - t

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import pickle
 import time
@@ -69,6 +70,13 @@ class AnalysisConfig:
         Bootstrap resamples of the height error bars (0: matching σ only).
     seed : int
         Seed of the bootstrap.
+    stereo_target_sigma_px : float or None
+        The predicted 1σ (pixels) that each stereo match's subset is sized to reach, in the
+        automatic grid and in the refinement of clicks (``auto_match`` and
+        ``refine_correspondences(target_sigma_px=...)``, :func:`semlab.adaptive.adaptive_icgn`;
+        default 0.05, issue #13); None (``--set stereo_target_sigma_px=none``): fixed 21×21
+        subsets, the automatic default before 2026-12-03 (faster: see the README's cost of
+        the sizing on large views).
     track_method : {"subset", "lk"}
         IC-GN subsets (default) or pyramidal Lucas–Kanade for the tracking steps. On the
         8-frame polished / real:fei / real:quartz series of
@@ -101,6 +109,7 @@ class AnalysisConfig:
     stereo_method: str | None = None
     n_boot: int = 200
     seed: int = 0
+    stereo_target_sigma_px: float | str | None = 0.05
     track_method: str = "subset"
     track_target_sigma_px: float | str | None = "auto"
     gauge_length_px: float | None = None
@@ -125,6 +134,11 @@ class AnalysisConfig:
                               "raw, refined, auto, merged (or None)")
         if self.track_method not in TRACK_METHODS:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
+        t = self.stereo_target
+        if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool)
+                                  and math.isfinite(t) and t > 0):
+            raise SemlabError(f"stereo_target_sigma_px = {t!r}: give a target > 0 pixels, "
+                              "or None (fixed 21×21 subsets)")
         t = self.track_target
         if t is not None and not (self.track_method == "subset" and isinstance(t, (int, float))
                                   and not isinstance(t, bool) and t > 0):
@@ -140,6 +154,14 @@ class AnalysisConfig:
         if self.gauge_length_px is not None and not self.gauge_length_px > 0:
             raise SemlabError(f"gauge_length_px = {self.gauge_length_px!r}: give a length > 0 "
                               "in pixels, or None")
+
+    @property
+    def stereo_target(self):
+        """``stereo_target_sigma_px`` with ``"none"`` (from ``--set``) as None."""
+        t = self.stereo_target_sigma_px
+        if isinstance(t, str) and t.lower() == "none":
+            return None
+        return t
 
     @property
     def track_target(self):
@@ -180,7 +202,7 @@ class AnalysisConfig:
 
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
-        own = {"stereo": ("stereo_method", "n_boot", "seed"),
+        own = {"stereo": ("stereo_method", "n_boot", "seed", "stereo_target"),
                "heightmap": ("heightmap_roi", "heightmap_method"),
                "tracking": ("track_method", "track_target"),
                "strain": ("gauge_length_px",)}
@@ -487,8 +509,10 @@ class Analysis:
         params = dict(cfg.for_step("stereo"), stereo_method=m, n_boot=n_boot)
 
         def compute():
+            size = {"target_sigma_px": cfg.stereo_target}
             res = pipeline.run_stereo(exp, method=m, n_boot=n_boot, seed=cfg.seed,
-                                      progress=self.progress, tilt_matches=self.tilt_matches())
+                                      progress=self.progress, tilt_matches=self.tilt_matches(),
+                                      refine_kw=size, auto_kw=size)
             res.calibration["analysis_config"] = cfg.as_dict()
             return res
 
@@ -503,9 +527,11 @@ class Analysis:
         st = self.experiment.stereo
         if st is None or st.tilt_deg is not None or len(st.view_paths) < 3:
             return None
-        return self._cached("tilt_matches", {},
-                            lambda: pipeline.match_for_tilts(self.experiment,
-                                                             progress=self.progress))
+        t = self.config.stereo_target
+        return self._cached("tilt_matches", {"stereo_target": t},
+                            lambda: pipeline.match_for_tilts(
+                                self.experiment, progress=self.progress,
+                                auto_kw={"target_sigma_px": t}))
 
     def heightmap(self):
         """The dense height map of views 0 and 1 and the bands measured on it.

@@ -116,7 +116,7 @@ class AutoMatchParams:
     max_features: int = 5000
     backward_px: float = 0.1
     dense_prior_below: float = 0.5
-    target_sigma_px: float = None
+    target_sigma_px: float = 0.05
     max_half_window: int = 28
     epipolar: bool = True
     backward_sigma_p: float = None

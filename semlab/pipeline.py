@@ -443,24 +443,26 @@ def vanishing_summary(lines):
     return d, cal
 
 
-def match_for_tilts(exp, progress=True):
+def match_for_tilts(exp, progress=True, auto_kw=None):
     """Matches for the tilt estimation of 3+ views: square subsets, the middle view as the
-    matching reference (see :func:`choose_tilts`). Returns (M, V, 2) valid matches, pixels."""
+    matching reference (see :func:`choose_tilts`), otherwise the keywords ``auto_kw`` of
+    :func:`semlab.matching.auto_match` that the heights use. Returns (M, V, 2) valid
+    matches, pixels."""
     from .tiled_stereo import run_auto_match
 
     v = len(exp.stereo.view_paths)
-    m = run_auto_match(exp.views(), ref_view=(v - 1) // 2, band_aware=False,
-                       progress=progress)
+    kw = {**(auto_kw or {}), "ref_view": (v - 1) // 2, "band_aware": False}
+    m = run_auto_match(exp.views(), progress=progress, **kw)
     return m.pts[m.valid]
 
 
-def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None):
+def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None, auto_kw=None):
     """The stage tilt of each view and where it came from.
 
     Order of preference: experiment.toml, the images' SEM metadata, estimation from 3+ views
     (:func:`semlab.reconstruct.estimate_tilts` on ``tilt_matches``, by default
-    :func:`match_for_tilts`), the vanishing-point relative rotation (for two views, split
-    symmetrically about 0°: only the difference is observable).
+    :func:`match_for_tilts` with ``auto_kw``), the vanishing-point relative rotation (for
+    two views, split symmetrically about 0°: only the difference is observable).
 
     Returns
     -------
@@ -483,7 +485,7 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None):
         # reference the middle tilt came out 0.08-0.18° off on synthetic -5/0/+5° scenes;
         # with the middle one 0.04-0.06° (benchmarks/stereo_accuracy.py).
         if tilt_matches is None:
-            tilt_matches = match_for_tilts(exp, progress=progress)
+            tilt_matches = match_for_tilts(exp, progress=progress, auto_kw=auto_kw)
         tilt_pts = tilt_matches if len(tilt_matches) >= 20 else pts
         est = reconstruct.estimate_tilts(tilt_pts, exp.pixel_size_um, progress=progress)
         return np.asarray(est.tilt_deg), "estimated", np.asarray(est.tilt_sigma_deg)
@@ -656,7 +658,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
     else:
         axis_used = 90.0
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress,
-                                                 tilt_matches=tilt_matches)
+                                                 tilt_matches=tilt_matches, auto_kw=auto_kw)
     # raw clicks carry no matching estimate: assume the typical hand-click error
     matched = np.isfinite(sigma_px)
     sigma_px = np.clip(np.where(matched, sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)

@@ -65,6 +65,35 @@ def test_tracking_with_subsets_sized_by_information(computed):
         semlab.AnalysisConfig(track_method="subset", track_target_sigma_px=0)
 
 
+def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monkeypatch):
+    """The default stereo matching sizes each subset to 0.05 px (automatic grid and refined
+    clicks, recorded in calibration.json); `none` gives fixed subsets and recomputes the
+    heights."""
+    exp, out, an, _ = computed
+    assert an.config.stereo_target == 0.05
+    cal = json.loads((out / "calibration.json").read_text())
+    assert cal["auto_match_params"]["target_sigma_px"] == 0.05
+    assert cal["analysis_config"]["stereo_target_sigma_px"] == 0.05
+    assert semlab.AnalysisConfig(stereo_target_sigma_px="none").stereo_target is None
+    for bad in (0, -0.1, float("nan"), "small", True):
+        with pytest.raises(semlab.SemlabError, match="stereo_target_sigma_px"):
+            semlab.AnalysisConfig(stereo_target_sigma_px=bad)
+    seen = []
+    real = pipeline.match_views
+
+    def spy(*args, **kw):
+        seen.append((kw["refine_kw"], kw["auto_kw"]))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(pipeline, "match_views", spy)
+    fixed = semlab.Analysis(exp, out.parent / "fixed", n_boot=0, stereo_target_sigma_px="none",
+                            heightmap=False, progress=False)
+    res = fixed.stereo()
+    assert fixed.computed == ["stereo"]
+    assert seen == [({"target_sigma_px": None}, {"target_sigma_px": None})]
+    assert res.calibration["auto_match_params"]["target_sigma_px"] is None
+
+
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,
                                                                  monkeypatch):
     calls = []
