@@ -8,7 +8,8 @@ Two checks (issue #13's error bars, the sized ``auto_match`` default):
    (``match_sigma.aposteriori_sigma``) switched off; per subset side: the robust spread of
    the parallax error (heights against the truth after removing the plane of the error,
    divided by the height per pixel of parallax), the median σ, and the fraction within 1σ
-   and 2σ.
+   and 2σ; and, as an alternative model error, the noise σ combined with the magnitude of
+   ``match_sigma.curvature_bias`` (local quadrics through 12 / 24 / 48 neighbours).
 2. ``--monte-carlo``: the noise part alone. One polished scene at −5/+5°, realistic
    detector; the points of one fixed-subset ``auto_match`` (16 px grid) refined by
    ``subset.icgn_refine`` (affine, 1 px pre-smoothing) in 12 new noise draws at h = 10, 14,
@@ -32,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
 
 from semlab import matching, reconstruct, synth, validation  # noqa: E402
+from semlab.match_sigma import curvature_bias  # noqa: E402
 from semlab.subset import icgn_refine  # noqa: E402
 from semlab.synth_texture import detect  # noqa: E402
 
@@ -41,6 +43,19 @@ VARIANTS = ("default", "no model error", "no a posteriori factor", "neither")
 
 def robust_sd(a):
     return 1.4826 * float(np.median(np.abs(a - np.median(a))))
+
+
+def _table(title, ex, s, side_px, um_per_px):
+    print(f"\n{title}: {len(ex)} points, RMSE {1000 * um_per_px * np.sqrt(np.mean(ex ** 2)):.1f} nm, "
+          f"within 1σ / 2σ {np.mean(np.abs(ex) < s):.0%} / {np.mean(np.abs(ex) < 2 * s):.0%}\n")
+    print("| subset | points | robust error (px) | median σ (px) | within 1σ | within 2σ |")
+    print("|---|---|---|---|---|---|")
+    for side in np.unique(side_px):
+        w = side_px == side
+        if w.sum() >= 20:
+            print(f"| {side} px | {w.sum()} | {robust_sd(ex[w]):.4f} | {np.median(s[w]):.4f} | "
+                  f"{np.mean(np.abs(ex[w]) < s[w]):.0%} | {np.mean(np.abs(ex[w]) < 2 * s[w]):.0%} |",
+                  flush=True)
 
 
 def sized_terms(cell):
@@ -67,17 +82,15 @@ def sized_terms(cell):
                 zt = validation.true_height_at(exp.truth_dir, p[:, 0])
                 ex = validation.height_errors(z, zt, p[:, 0])["err_um"] / um_per_px
                 s = m.sigma_px[ok]
-                print(f"\n{cell} [{name}]: {ok.sum()} points, RMSE "
-                      f"{1000 * um_per_px * np.sqrt(np.mean(ex ** 2)):.1f} nm, within 1σ / 2σ "
-                      f"{np.mean(np.abs(ex) < s):.0%} / {np.mean(np.abs(ex) < 2 * s):.0%}")
-                print("| subset | points | robust error (px) | median σ (px) | within 1σ | within 2σ |")
-                print("|---|---|---|---|---|---|")
-                for side in np.unique(m.subset_px[ok]):
-                    w = m.subset_px[ok] == side
-                    if w.sum() >= 20:
-                        print(f"| {side} px | {w.sum()} | {robust_sd(ex[w]):.4f} | "
-                              f"{np.median(s[w]):.4f} | {np.mean(np.abs(ex[w]) < s[w]):.0%} | "
-                              f"{np.mean(np.abs(ex[w]) < 2 * s[w]):.0%} |", flush=True)
+                _table(f"{cell} [{name}]", ex, s, m.subset_px[ok], um_per_px)
+                if name == "no model error":
+                    # the alternative: the noise σ with the centre bias of the mean curvature
+                    pa = p[:, 1, 0] - p[:, 0, 0]
+                    h = (m.subset_px[ok] - 1) / 2
+                    for k in (12, 24, 48):
+                        b = np.abs(curvature_bias(p[:, 0], pa, h, k=k))
+                        _table(f"{cell} [noise σ ⊕ |curvature_bias|, k = {k}]", ex,
+                               np.hypot(s, b), m.subset_px[ok], um_per_px)
         finally:
             matching.parallax_model_error, matching.aposteriori_sigma = orig_me, orig_ap
 
