@@ -9,7 +9,9 @@ Two checks (issue #13's error bars, the sized ``auto_match`` default):
    the parallax error (heights against the truth after removing the plane of the error,
    divided by the height per pixel of parallax), the median σ, and the fraction within 1σ
    and 2σ; and, as an alternative model error, the noise σ combined with the magnitude of
-   ``match_sigma.curvature_bias`` (local quadrics through 12 / 24 / 48 neighbours).
+   ``match_sigma.curvature_bias`` (local quadrics through 12 / 24 / 48 neighbours), and,
+   on the accepted points alone, the plane-fit model error and that curvature bias with the
+   quadric fits' model error.
 2. ``--monte-carlo``: the noise part alone. One polished scene at −5/+5°, realistic
    detector; the points of one fixed-subset ``auto_match`` (16 px grid) refined by
    ``subset.icgn_refine`` (affine, 1 px pre-smoothing) in 12 new noise draws at h = 10, 14,
@@ -84,13 +86,26 @@ def sized_terms(cell):
                 s = m.sigma_px[ok]
                 _table(f"{cell} [{name}]", ex, s, m.subset_px[ok], um_per_px)
                 if name == "no model error":
-                    # the alternative: the noise σ with the centre bias of the mean curvature
+                    # alternatives computed on the accepted points alone (auto_match computes
+                    # its model error before the later outlier stages, on all points alive
+                    # then): the same plane-fit model error; the noise σ with the centre bias
+                    # of the mean curvature; that bias with the quadric fits' own model error
+                    # (the non-quadratic part: steps)
                     pa = p[:, 1, 0] - p[:, 0, 0]
                     h = (m.subset_px[ok] - 1) / 2
+                    side = m.subset_px[ok]
+                    me_plane = orig_me(p[:, 0], pa, s, h, spacing_px=8)
+                    _table(f"{cell} [noise σ ⊕ plane-fit model error, accepted points only]",
+                           ex, np.hypot(s, me_plane), side, um_per_px)
+                    me_quad = orig_me(p[:, 0], pa, s, h, quadratic=True, spacing_px=8)
                     for k in (12, 24, 48):
                         b = np.abs(curvature_bias(p[:, 0], pa, h, k=k))
                         _table(f"{cell} [noise σ ⊕ |curvature_bias|, k = {k}]", ex,
-                               np.hypot(s, b), m.subset_px[ok], um_per_px)
+                               np.hypot(s, b), side, um_per_px)
+                        if k == 12:
+                            _table(f"{cell} [noise σ ⊕ |curvature_bias| k = 12 ⊕ quadric-fit "
+                                   "model error, accepted points only]", ex,
+                                   np.sqrt(s ** 2 + b ** 2 + me_quad ** 2), side, um_per_px)
         finally:
             matching.parallax_model_error, matching.aposteriori_sigma = orig_me, orig_ap
 
