@@ -30,11 +30,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
 
-from semlab import matching, reconstruct, synth, validation  # noqa: E402
+from semlab import heightmap, matching, reconstruct, synth, validation  # noqa: E402
 from semlab.match_sigma import curvature_bias  # noqa: E402
 from semlab.subset import icgn_refine  # noqa: E402
 from semlab.synth_texture import detect  # noqa: E402
@@ -44,7 +45,7 @@ VARIANTS = ("default", "no model error", "no a posteriori factor", "neither")
 
 
 def robust_sd(a):
-    return 1.4826 * float(np.median(np.abs(a - np.median(a))))
+    return float(median_abs_deviation(a, scale="normal"))
 
 
 def _table(title, ex, s, side_px, um_per_px):
@@ -67,8 +68,8 @@ def sized_terms(cell):
     with tempfile.TemporaryDirectory() as tmp:
         exp = am.make_cell(Path(tmp), regime, noise, tilts)
         v = exp.views()[:2]
-        t = np.radians(tilts)
-        um_per_px = exp.pixel_size_um * np.cos(t[0]) / abs(np.sin(t[1] - t[0]))
+        # height per pixel of view-1 x (parallax), the same linear model as the matrix
+        um_per_px = abs(heightmap.height_model_from_tilts(*tilts, exp.pixel_size_um).coef[0])
         try:
             for name in VARIANTS:
                 no_me = name in ("no model error", "neither")
@@ -94,10 +95,11 @@ def sized_terms(cell):
                     pa = p[:, 1, 0] - p[:, 0, 0]
                     h = (m.subset_px[ok] - 1) / 2
                     side = m.subset_px[ok]
-                    me_plane = orig_me(p[:, 0], pa, s, h, spacing_px=8)
+                    me_plane = orig_me(p[:, 0], pa, s, h, spacing_px=m.params.spacing_px)
                     _table(f"{cell} [noise σ ⊕ plane-fit model error, accepted points only]",
                            ex, np.hypot(s, me_plane), side, um_per_px)
-                    me_quad = orig_me(p[:, 0], pa, s, h, quadratic=True, spacing_px=8)
+                    me_quad = orig_me(p[:, 0], pa, s, h, quadratic=True,
+                                      spacing_px=m.params.spacing_px)
                     for k in (12, 24, 48):
                         b = np.abs(curvature_bias(p[:, 0], pa, h, k=k))
                         _table(f"{cell} [noise σ ⊕ |curvature_bias|, k = {k}]", ex,

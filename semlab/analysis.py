@@ -158,19 +158,14 @@ class AnalysisConfig:
     @property
     def stereo_target(self):
         """``stereo_target_sigma_px`` with ``"none"`` (from ``--set``) as None."""
-        t = self.stereo_target_sigma_px
-        if isinstance(t, str) and t.lower() == "none":
-            return None
-        return t
+        return _none_word(self.stereo_target_sigma_px)
 
     @property
     def track_target(self):
         """``track_target_sigma_px`` with ``"auto"`` resolved (0.02 px with subsets, None
         with LK)."""
-        t = self.track_target_sigma_px
+        t = _none_word(self.track_target_sigma_px)   # `--set ...=none`: fixed subsets
         if isinstance(t, str):
-            if t.lower() == "none":        # `--set track_target_sigma_px=none`: fixed subsets
-                return None
             if t != "auto":
                 raise SemlabError(f"track_target_sigma_px = {t!r}: give a target > 0 pixels, "
                                   "'auto' or None")
@@ -210,6 +205,11 @@ class AnalysisConfig:
                  "tracking": ("stereo", "tracking"),
                  "strain": ("stereo", "tracking", "strain")}
         return {k: getattr(self, k) for s in needs[step] for k in own[s]}
+
+
+def _none_word(value):
+    """None for the word "none" (any case: a `--set KEY=none` value, not TOML), else ``value``."""
+    return None if isinstance(value, str) and value.lower() == "none" else value
 
 
 # ------------------------------------------------------------------------------ fingerprints
