@@ -118,6 +118,91 @@ def height_errors(z_est_um, z_true_um, xy=None, plane="lsq"):
             "max_um": float(a.max()), "p95_um": float(np.percentile(a, 95)), "n": int(ok.sum())}
 
 
+_SUBSET_PARTS = {None: lambda X, Y: np.ones(X.shape, bool), "left": lambda X, Y: X <= 0,
+                 "right": lambda X, Y: X >= 0, "top": lambda X, Y: Y <= 0,
+                 "bottom": lambda X, Y: Y >= 0}
+
+
+def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, part=None):
+    """Centre bias of square subsets matched on a known displacement field, pixels.
+
+    To first order an IC-GN subset on a displacement field ``d`` returns the least-squares
+    fit of its shape function to ``d`` over the subset, each pixel weighted by its
+    information about that displacement component (e.g. the squared x gradient of the
+    reference image for the x displacement). The subset's model bias is that fit at the
+    centre minus ``d`` at the centre: zero for a field the shape function spans (any
+    linear field with an affine subset), ``a h (h + 1) / 3`` for ``d = a x²`` with uniform
+    weights (the mean of ``a x²`` over the subset, as in
+    :func:`semlab.match_sigma.curvature_bias`). With the true field of a synthetic
+    experiment this is the bias an ideal estimate of the model error would report
+    (``benchmarks/subset_bias_oracle.py``).
+
+    Parameters
+    ----------
+    field_px : (H, W) array
+        The displacement component on the reference pixel grid, pixels.
+    pts : (N, 2) array of (x, y) pixels
+        Subset centres (sub-pixel allowed; the subset is centred on the nearest pixel).
+    half_window : int or (N,) array of int
+        Half size ``h`` of each square ``(2h+1)²`` subset.
+    weight : (H, W) array, optional
+        Information of each pixel (default: uniform).
+    quadratic : bool
+        Second-order shape function (adds ``x², x y, y²`` to ``1, x, y``).
+    part : {None, "left", "right", "top", "bottom"}
+        A half subset (``x <= 0``, ``x >= 0``, ``y <= 0`` or ``y >= 0`` of the square, the
+        centre on its edge), as in subset splitting at a discontinuity.
+
+    Returns
+    -------
+    bias : (N,) array
+        Pixels; NaN where the subset leaves the grid or its fit is singular.
+    info_inv : (N,) array
+        ``[(Aᵀ W A)⁻¹]₀₀`` of the centre term, in inverse weight units: with the squared
+        gradients over the noise variance as weights, the Cramér–Rao variance of the
+        displacement at the centre; the ratio between two shapes is the ratio of their
+        noise variances.
+    """
+    d = np.asarray(field_px, float)
+    if d.ndim != 2:
+        raise SemlabError(f"field_px must be a 2D array, got shape {d.shape}")
+    w = np.ones_like(d) if weight is None else np.asarray(weight, float)
+    if w.shape != d.shape:
+        raise SemlabError(f"weight must have the shape of field_px {d.shape}, got {w.shape}")
+    if part not in _SUBSET_PARTS:
+        raise SemlabError(f"part must be one of {sorted(k for k in _SUBSET_PARTS if k)} or "
+                          f"None, got {part!r}")
+    p = np.asarray(pts, float).reshape(-1, 2)
+    hs = np.broadcast_to(np.asarray(half_window, int), (len(p),))
+    bias = np.full(len(p), np.nan)
+    info_inv = np.full(len(p), np.nan)
+    H, W = d.shape
+    d_centre = ndimage.map_coordinates(d, [p[:, 1], p[:, 0]], order=3, mode="nearest")
+    for i, ((x, y), h) in enumerate(zip(p, hs)):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        xi, yi = int(round(x)), int(round(y))
+        if xi - h < 0 or yi - h < 0 or xi + h >= W or yi + h >= H:
+            continue
+        yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+        keep = _SUBSET_PARTS[part](xx, yy).ravel()
+        X = (xx.ravel() + xi - x)[keep]
+        Y = (yy.ravel() + yi - y)[keep]
+        cols = [np.ones_like(X), X, Y] + ([X * X, X * Y, Y * Y] if quadratic else [])
+        A = np.column_stack(cols)
+        wi = w[yi - h:yi + h + 1, xi - h:xi + h + 1].ravel()[keep]
+        di = d[yi - h:yi + h + 1, xi - h:xi + h + 1].ravel()[keep]
+        N = (A * wi[:, None]).T @ A
+        try:
+            Ninv = np.linalg.inv(N)
+        except np.linalg.LinAlgError:
+            continue
+        c = Ninv @ ((A * wi[:, None]).T @ di)
+        bias[i] = c[0] - d_centre[i]
+        info_inv[i] = Ninv[0, 0]
+    return bias, info_inv
+
+
 def load_fields(truth):
     """The true displacement/strain fields (``truth/fields.npz``) as a dict of arrays."""
     d = _truth_dir(truth)

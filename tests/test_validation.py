@@ -65,3 +65,36 @@ def test_robust_gauge_plane_ignores_gross_errors():
     assert abs(np.median(m[inl])) < 0.1 * np.std(ze - zt)
     with pytest.raises(SemlabError, match="plane"):
         validation.height_errors(ze, zt, xy, plane="median")
+
+
+def test_subset_model_bias_known_answers():
+    """The first-order bias of a subset on a known field: none where the shape function
+    spans the field, the mean of the quadratic term for a curved one, none for a half
+    subset that does not reach a step, and less information in a half than in a square."""
+    yy, xx = np.mgrid[0:80, 0:100].astype(float)
+    rng = np.random.default_rng(3)
+    w = rng.uniform(0.1, 2.0, xx.shape)
+    pts = np.array([[50.0, 40.0], [30.3, 25.6], [70.0, 55.0]])
+    lin = 0.3 + 0.01 * xx - 0.02 * yy
+    b, _ = validation.subset_model_bias(lin, pts, 10, weight=w)
+    assert np.max(np.abs(b)) < 1e-9                      # any weights: affine spans it
+    a, h = 2e-3, 7
+    quad = lin + a * (xx - 50) ** 2
+    b, _ = validation.subset_model_bias(quad, pts[:1], h)
+    assert b[0] == pytest.approx(a * h * (h + 1) / 3, rel=1e-9)
+    bq, _ = validation.subset_model_bias(quad, pts, h, weight=w, quadratic=True)
+    assert np.max(np.abs(bq)) < 1e-9                     # a second-order shape spans it
+    step = lin + 0.5 * (xx >= 53)                        # a step 3 px right of the centre
+    b_full, v_full = validation.subset_model_bias(step, pts[:1], 10)
+    b_left, v_left = validation.subset_model_bias(step, pts[:1], 10, part="left")
+    b_right, _ = validation.subset_model_bias(step, pts[:1], 10, part="right")
+    assert abs(b_full[0]) > 0.05 and abs(b_right[0]) > 0.05
+    assert abs(b_left[0]) < 1e-9
+    assert v_left[0] > v_full[0]
+    # subsets that leave the grid are NaN; wrong inputs are refused
+    b, _ = validation.subset_model_bias(lin, [[3.0, 40.0]], 10)
+    assert np.isnan(b[0])
+    with pytest.raises(SemlabError, match="part"):
+        validation.subset_model_bias(lin, pts, 5, part="middle")
+    with pytest.raises(SemlabError, match="weight"):
+        validation.subset_model_bias(lin, pts, 5, weight=w[:10])
