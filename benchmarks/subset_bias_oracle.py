@@ -25,7 +25,7 @@ true parallax field over the point's own subset, each pixel weighted by its x in
    square or one of its four halves. In nm and against DeepFlow at the same points, computed
    in the same run (``accuracy_matrix.dense_flows``).
 
-Run:  python benchmarks/subset_bias_oracle.py                 # 2 cells, ~15 min on 2 cores (8 min each, run side by side)
+Run:  python benchmarks/subset_bias_oracle.py                 # 2 cells, one after the other (each took 8–11 min beside the other on 2 shared cores)
       python benchmarks/subset_bias_oracle.py --cells polished/realistic/-5/5
 """
 
