@@ -75,7 +75,12 @@ _STAGING_PREFIX = ".semlab-run-"
 _SYSTEM_DIRS = (Path("/proc"), Path("/sys"), Path("/dev"))
 #: Kernel options: no "[IPKernelApp] WARNING | Kernel is running over TCP..." (nor other
 #: kernel log lines) in the terminal; a failing cell's error is in the notebook and the message.
-KERNEL_ARGUMENTS = ["--IPKernelApp.log_level=CRITICAL"]
+#: The kernel's tornado loggers too: a shutdown race of ipykernel's control channel (a flush
+#: after its socket closed, "ZMQError: Socket operation on non-socket") otherwise prints a
+#: traceback from the kernel process after a failing notebook (seen once in CI, 2026-12-03).
+KERNEL_ARGUMENTS = ["--IPKernelApp.log_level=CRITICAL",
+                    "--IPKernelApp.exec_lines=__import__('logging').getLogger('tornado')"
+                    ".setLevel(50)"]
 #: Loggers of the notebook machinery silenced during a run (they log kernel shutdown noise).
 _QUIET_LOGGERS = ("tornado", "traitlets", "papermill", "nbclient", "asyncio")
 
