@@ -45,7 +45,7 @@ import accuracy_matrix as am  # noqa: E402
 
 from semlab import heightmap, matching, reconstruct, validation, variational  # noqa: E402
 from semlab.match_sigma import curvature_bias  # noqa: E402
-from semlab.subset import icgn_refine  # noqa: E402
+from semlab.subset import icgn_refine, square_subset  # noqa: E402
 
 CELLS = ("polished/realistic/-5/5", "real:fei/realistic/-5/5")
 SIZES = (10, 14, 20, 28, 40)
@@ -72,12 +72,6 @@ def _nan_min(arrays):
     a = np.array(arrays, float)
     m = np.min(np.where(np.isnan(a), np.inf, a), 0)
     return np.where(np.isinf(m), np.nan, m)
-
-
-def _half_offsets(h, part):
-    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
-    keep = {"left": xx <= 0, "right": xx >= 0, "top": yy <= 0, "bottom": yy >= 0}[part]
-    return np.column_stack([xx[keep], yy[keep]])
 
 
 def _plugin_bias(v0, v1, p, h, info):
@@ -115,7 +109,9 @@ def run_cell(cell):
         coef = heightmap.height_model_from_tilts(*tilts, exp.pixel_size_um).coef[0]
         nm_per_px = 1000 * abs(coef)
         # the true parallax (its non-affine part: the height over µm per pixel of parallax)
-        field = np.load(validation._truth_dir(exp.truth_dir) / "height_view0.npy") / coef
+        gy, gx = np.mgrid[0:v0.shape[0], 0:v0.shape[1]]
+        field = (validation.true_height_at(exp.truth_dir, np.column_stack([gx.ravel(), gy.ravel()]))
+                 .reshape(v0.shape) / coef)
         info = ndimage.gaussian_filter(v0, SMOOTH_PX, order=(0, 1)) ** 2
         m, s_noise = _matches([v0, v1])
         p = m.pts[m.valid]
@@ -166,7 +162,7 @@ def run_cell(cell):
             w = np.flatnonzero(h == hh)
             for part in HALVES:
                 r = icgn_refine(v0, v1, p[w, 0], p[w, 1], half_window=int(hh), warp="affine",
-                                smooth_sigma_px=SMOOTH_PX, subset_offsets=_half_offsets(int(hh), part))
+                                smooth_sigma_px=SMOOTH_PX, subset_offsets=square_subset(int(hh), part))
                 xs[part][w] = np.where(r.converged, r.pts[:, 0], np.nan)
         split = np.fmax(np.abs(xs["left"] - xs["right"]), np.abs(xs["top"] - xs["bottom"])) / 2
         split_est = np.nan_to_num(split)

@@ -55,7 +55,8 @@ from .errors import SemlabError
 from .noise import filter_noise_gain, image_noise_sigma
 from .zncc import zncc_match
 
-__all__ = ["SubsetResult", "zncc_match", "icgn_refine", "prefilter_image", "oriented_subset"]
+__all__ = ["SubsetResult", "zncc_match", "icgn_refine", "prefilter_image", "oriented_subset",
+           "square_subset"]
 
 _CHUNK_PIX = 2 ** 17  # IC-GN subset pixels per chunk (working arrays stay in cache)
 _N_THREADS = max(1, min(2, os.cpu_count() or 1))
@@ -167,6 +168,35 @@ def _noise_variances(noise_sigma, ref, cur):
 
 
 # --------------------------------------------------------------------------- IC-GN
+_SQUARE_PARTS = {None: lambda x, y: np.ones(x.shape, bool), "left": lambda x, y: x <= 0,
+                 "right": lambda x, y: x >= 0, "top": lambda x, y: y <= 0,
+                 "bottom": lambda x, y: y >= 0}
+
+
+def square_subset(half_window, part=None):
+    """Integer pixel offsets of the ``(2h+1)²`` square, or of one of its halves.
+
+    Parameters
+    ----------
+    half_window : int
+        Half size ``h``.
+    part : {None, "left", "right", "top", "bottom"}
+        The whole square, or its half ``dx <= 0``, ``dx >= 0``, ``dy <= 0`` or ``dy >= 0``
+        (the centre on its edge, as in subset splitting at a discontinuity).
+
+    Returns
+    -------
+    (P, 2) int array of ``(dx, dy)`` offsets, for ``icgn_refine(subset_offsets=...)``.
+    """
+    if part not in _SQUARE_PARTS:
+        raise SemlabError(f"part must be one of {sorted(k for k in _SQUARE_PARTS if k)} or "
+                          f"None, got {part!r}")
+    h = _check_int(half_window, "half_window", 0)
+    oy, ox = np.mgrid[-h:h + 1, -h:h + 1]
+    keep = _SQUARE_PARTS[part](ox, oy)
+    return np.column_stack([ox[keep], oy[keep]])
+
+
 def oriented_subset(half_length, half_width, angle_deg):
     """Integer pixel offsets of a rectangle rotated by ``angle_deg``.
 

@@ -118,11 +118,6 @@ def height_errors(z_est_um, z_true_um, xy=None, plane="lsq"):
             "max_um": float(a.max()), "p95_um": float(np.percentile(a, 95)), "n": int(ok.sum())}
 
 
-_SUBSET_PARTS = {None: lambda X, Y: np.ones(X.shape, bool), "left": lambda X, Y: X <= 0,
-                 "right": lambda X, Y: X >= 0, "top": lambda X, Y: Y <= 0,
-                 "bottom": lambda X, Y: Y >= 0}
-
-
 def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, part=None):
     """Centre bias of square subsets matched on a known displacement field, pixels.
 
@@ -150,8 +145,8 @@ def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, 
     quadratic : bool
         Second-order shape function (adds ``x², x y, y²`` to ``1, x, y``).
     part : {None, "left", "right", "top", "bottom"}
-        A half subset (``x <= 0``, ``x >= 0``, ``y <= 0`` or ``y >= 0`` of the square, the
-        centre on its edge), as in subset splitting at a discontinuity.
+        A half subset (:func:`semlab.subset.square_subset`), as in subset splitting at a
+        discontinuity.
 
     Returns
     -------
@@ -163,17 +158,17 @@ def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, 
         displacement at the centre; the ratio between two shapes is the ratio of their
         noise variances.
     """
+    from .subset import square_subset
+
     d = np.asarray(field_px, float)
     if d.ndim != 2:
         raise SemlabError(f"field_px must be a 2D array, got shape {d.shape}")
     w = np.ones_like(d) if weight is None else np.asarray(weight, float)
     if w.shape != d.shape:
         raise SemlabError(f"weight must have the shape of field_px {d.shape}, got {w.shape}")
-    if part not in _SUBSET_PARTS:
-        raise SemlabError(f"part must be one of {sorted(k for k in _SUBSET_PARTS if k)} or "
-                          f"None, got {part!r}")
     p = np.asarray(pts, float).reshape(-1, 2)
     hs = np.broadcast_to(np.asarray(half_window, int), (len(p),))
+    offsets = {h: square_subset(h, part) for h in np.unique(hs)}   # refuses a wrong part
     bias = np.full(len(p), np.nan)
     info_inv = np.full(len(p), np.nan)
     H, W = d.shape
@@ -184,14 +179,11 @@ def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, 
         xi, yi = int(round(x)), int(round(y))
         if xi - h < 0 or yi - h < 0 or xi + h >= W or yi + h >= H:
             continue
-        yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
-        keep = _SUBSET_PARTS[part](xx, yy).ravel()
-        X = (xx.ravel() + xi - x)[keep]
-        Y = (yy.ravel() + yi - y)[keep]
+        ox, oy = offsets[h].T
+        X, Y = ox + (xi - x), oy + (yi - y)
         cols = [np.ones_like(X), X, Y] + ([X * X, X * Y, Y * Y] if quadratic else [])
         A = np.column_stack(cols)
-        wi = w[yi - h:yi + h + 1, xi - h:xi + h + 1].ravel()[keep]
-        di = d[yi - h:yi + h + 1, xi - h:xi + h + 1].ravel()[keep]
+        wi, di = w[yi + oy, xi + ox], d[yi + oy, xi + ox]
         N = (A * wi[:, None]).T @ A
         try:
             Ninv = np.linalg.inv(N)
