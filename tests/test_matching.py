@@ -616,3 +616,29 @@ def test_points_seen_in_three_of_four_views_pass_the_multiview_test():
     assert not (vv[inside, 2] & vv[inside, 1]).any()         # no 3-view point with view 2
     outside = (x > 30 + 15) & (x < w // 2 - 30) & ((y < 50 - 15) | (y > 150 + 15))
     assert (vv[outside, 1] & vv[outside, 2]).mean() > 0.5    # ... where view 2 is right
+
+
+def test_variational_stage_lowers_the_height_error():
+    """Stage 9 earns its place: on noisy views of the ribbon scene with sharp flanks (relief
+    below the subset scale), averaging each accepted point's subset match with the
+    variational map's estimate there lowers the height error at the same points (14.6
+    against 18.8 nm), and the averaged error bars about hold (60 % / 90 % within 1σ / 2σ;
+    without the stage 72 % / 93 %)."""
+    sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)
+    ims = [sc.render(TILTS[0], noise=0.3, seed=1), sc.render(TILTS[1], noise=0.3, seed=2)]
+    t0, t1 = np.deg2rad(TILTS)
+    rms, held, res = {}, {}, {}
+    for on in (True, False):
+        a = auto_match(ims, spacing_px=8, progress=False, variational_fusion=on)
+        res[on] = a
+        v = a.only_valid()
+        x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
+        err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+        err -= err.mean()
+        z_sig = v.sigma_px * S_UM * np.cos(t0) / np.sin(t1 - t0)
+        rms[on] = np.sqrt(np.mean(err ** 2))
+        held[on] = (np.mean(np.abs(err) < z_sig), np.mean(np.abs(err) < 2 * z_sig))
+    assert np.array_equal(res[True].valid, res[False].valid)   # the same points
+    assert res[True].params.variational_fusion and not res[False].params.variational_fusion
+    assert rms[True] < 0.85 * rms[False], rms
+    assert 0.5 <= held[True][0] <= 0.85 and held[True][1] >= 0.85, held
