@@ -190,7 +190,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        the relief differently (the subset over its square, the variational map through a
        per-pixel smoothness prior), so their errors are partly independent. Where the two
        disagree by more than 3σ (the map misses a tall object's parallax) the subset match
-       stays.
+       stays; views matched with the dense prior (step 8b) keep their subsets.
 
     Parameters
     ----------
@@ -774,20 +774,26 @@ def _filter_multiview(st):
 
 
 def _stage_variational(st):
-    """Stage 9: the accepted points' positions in each view averaged with the variational
-    parallax map of that view pair (seeded by them), by inverse variance; their 1σ become
-    the average's (``st.fused_sig``)."""
+    """Stage 9: the points' positions in each view whose match there passed its tests,
+    averaged with the variational parallax map of that view pair (seeded by them), by
+    inverse variance; their 1σ become the average's (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
     from .fusion import inverse_variance, sample_parallax
     from .variational import variational_parallax
 
-    valid = st.valid
     sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
     for j in range(st.v):
-        if j == st.ref:
+        # views matched with the dense prior (a tall object: hundreds of pixels of curved
+        # parallax) keep their subsets: the map, refined around the flow, misses that
+        # parallax by pixels where the affine prior's subsets do not (the 3σ test below
+        # keeps them then), and a tall object's views are large
+        if j == st.ref or j in st.curved:
             continue
-        idx = np.flatnonzero(valid & np.all(np.isfinite(st.out[:, j]), axis=1))
+        # every point whose match in this view passed its tests (also the points seen in
+        # fewer views: MatchResult.seen_in)
+        idx = np.flatnonzero(st.vv[:, j] & st.vv[:, st.ref]
+                             & np.all(np.isfinite(st.out[:, j]), axis=1))
         if len(idx) < 8:        # the map's epipolar relation needs 8 seeds
             continue
         dm = variational_parallax(st.ims[st.ref], st.ims[j], seeds=st.out[idx][:, [st.ref, j]])

@@ -6,6 +6,10 @@ changed the gross errors by -1..+4 points; its evidence is the real-texture quic
 benchmarks/accuracy_matrix.py, see ``consistency_px``.)
 
 Scenes are the synthetic stereo pairs of test_matching.py, altered where the stage matters.
+The filters judge the subset matches, so they are tested on those (``variational_fusion=False``):
+stage 9, which averages the accepted matches with the variational map afterwards, pulls some
+wrong matches back too (the spotted pair's forward–backward test: 13 against 5 gross errors
+with it, so the stage still more than halves them).
 """
 
 import numpy as np
@@ -44,7 +48,7 @@ def test_forward_backward_stage_removes_mismatched_spots():
     sc, ims = _spotted_pair()
     gross = {}
     for name, kw in (("on", {}), ("off", dict(backward_px=None))):
-        _, e = _view_errors(sc, auto_match(ims, progress=False, **kw), TILTS, 1)
+        _, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), TILTS, 1)
         gross[name] = int((e > 0.5).sum())
     assert gross["off"] >= 2 * gross["on"] + 10, gross
 
@@ -65,7 +69,7 @@ def test_multiview_stage_removes_points_wrong_in_one_view():
     sc, tilts, ims = _three_views_one_wrong()
     n_wrong = {}
     for name, kw in (("on", {}), ("off", dict(multiview_px=None))):
-        v, e = _view_errors(sc, auto_match(ims, progress=False, **kw), tilts, 2)
+        v, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), tilts, 2)
         n_wrong[name] = int((e > 1.0).sum())
         # the first view pair is right everywhere: only the multi-view test can tell
         _, e1 = _view_errors(sc, v, tilts, 1)
@@ -102,7 +106,7 @@ def test_forward_backward_against_error_bars_keeps_rejecting_mismatched_spots():
     n, gross = {}, {}
     for name, kw in (("fixed", {}), ("sigma", dict(backward_sigma_p=0.99)),
                      ("off", dict(backward_px=None))):
-        _, e = _view_errors(sc, auto_match(ims, progress=False, **kw), TILTS, 1)
+        _, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), TILTS, 1)
         n[name], gross[name] = len(e), int((e > 0.5).sum())
     assert n["sigma"] >= n["fixed"], n
     assert gross["off"] - gross["sigma"] >= 0.75 * (gross["off"] - gross["fixed"]), gross
