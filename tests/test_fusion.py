@@ -75,3 +75,42 @@ def test_fuse_heightmaps_keeps_roi_and_notes_and_checks_roi():
     assert "made in a test" in hf.notes[0] and "50.0 % of the measured pixels" in hf.notes[-1]
     with pytest.raises(SemlabError, match="same heightmap_roi"):
         fuse_heightmaps(_hm(z_a, s_a, roi), _hm(z_b, s_b, (1, 0) + roi[2:]))
+
+
+def test_inverse_variance_known_answers_and_scatter():
+    from semlab.fusion import inverse_variance
+
+    a = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 2.0], [np.nan, 0.0]])
+    b = np.array([[1.0, 1.0], [2.0, 4.0], [np.nan, 0.0], [3.0, 3.0]])
+    f, s, wb = inverse_variance(a, [1.0, 1.0, 1.0, 1.0], b, [1.0, np.sqrt(3.0), 1.0, 2.0])
+    assert np.allclose(f[0], 0.5) and np.isclose(s[0], np.sqrt(0.5)) and wb[0] == 0.5
+    assert np.allclose(f[1], [0.5, 1.0]) and np.isclose(wb[1], 0.25)   # σ_b² = 3 σ_a²
+    assert np.isclose(s[1], np.sqrt(0.75))
+    assert np.allclose(f[2], [1.0, 2.0]) and s[2] == 1.0 and wb[2] == 0   # no b: a
+    assert np.allclose(f[3], [3.0, 3.0]) and s[3] == 2.0 and wb[3] == 1   # no a: b
+    # uncorrelated estimates: the average's scatter is its σ
+    rng = np.random.default_rng(0)
+    sa, sb = rng.uniform(0.5, 2, 20000), rng.uniform(0.5, 2, 20000)
+    f, s, _ = inverse_variance(rng.normal(0, sa), sa, rng.normal(0, sb), sb)
+    assert abs(np.std(f / s) - 1) < 0.02
+    with pytest.raises(SemlabError, match="one σ per row"):
+        inverse_variance(a, [1.0], b, [1.0])
+
+
+def test_sample_parallax_bilinear_and_holes():
+    from semlab.fusion import sample_parallax
+    from semlab.heightmap import DenseParallax
+
+    yy, xx = np.mgrid[0:20, 0:30].astype(float)
+    valid = np.ones((20, 30), bool)
+    valid[10, 15] = False
+    # roi starts at (5, 3): element [i, j] is the view-0 pixel (5 + j, 3 + i)
+    dm = DenseParallax(x1_px=xx + 5 + 0.5 * (yy + 3), y1_px=yy + 3 + 0.1,
+                       sigma_px=np.full((20, 30), 0.2), sigma_y_px=np.full((20, 30), 0.3), valid=valid, zncc=np.ones((20, 30)),
+                       roi=(5, 3, 35, 23), sigma_scale=1.0, params=None)
+    p = np.array([[7.25, 4.5], [20.0, 13.0], [2.0, 4.0], [12.5, 9.75]])
+    xy1, s = sample_parallax(dm, p)
+    assert np.allclose(xy1[0], [7.25 + 0.5 * 4.5, 4.6]) and np.isclose(s[0], 0.2)
+    assert np.allclose(xy1[3], [12.5 + 0.5 * 9.75, 9.85])
+    assert np.all(np.isnan(xy1[1])) and np.isnan(s[1])     # next to a hole
+    assert np.all(np.isnan(xy1[2])) and np.isnan(s[2])     # outside the roi
