@@ -131,13 +131,17 @@ def inverse_variance(a, sigma_a, b, sigma_b):
         ok_a = rows(np.isfinite(a)) & np.isfinite(sa) & (sa > 0)
         ok_b = rows(np.isfinite(b)) & np.isfinite(sb) & (sb > 0)
     both = ok_a & ok_b
-    wb = np.where(both, sa ** 2 / np.where(both, sa ** 2 + sb ** 2, 1.0), np.where(ok_b, 1.0, 0.0))
-    wb = np.where(ok_a | ok_b, wb, 0.0)
+    # σ outside the rows that use them set to 1, and the ratios in a form that a tiny or a huge
+    # σ (a point the map barely constrains) cannot overflow
+    sa1 = np.where(ok_a, sa, 1.0)
+    sb1 = np.where(ok_b, sb, 1.0)
+    with np.errstate(over="ignore", under="ignore"):
+        wb = np.where(both, 1.0 / (1.0 + (sb1 / sa1) ** 2), np.where(ok_b, 1.0, 0.0))
+        # sqrt(w² σa² + (1 − w)² σb²) = σa σb / hypot(σa, σb), the factor in [1/√2, 1]
+        s_both = np.minimum(sa1, sb1) * (np.maximum(sa1, sb1) / np.hypot(sa1, sb1))
     w = wb.reshape((-1,) + (1,) * (a.ndim - 1))
     fused = np.where(w > 0, w * np.nan_to_num(b) + (1 - w) * np.where(w < 1, a, 0.0), a)
-    sigma = np.where(both, np.sqrt((1 - wb) ** 2 * np.nan_to_num(sa) ** 2
-                                   + wb ** 2 * np.nan_to_num(sb) ** 2),
-                     np.where(ok_b & ~ok_a, sb, sa))
+    sigma = np.where(both, s_both, np.where(ok_b & ~ok_a, sb, sa))
     return fused, sigma, wb
 
 

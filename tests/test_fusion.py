@@ -93,6 +93,15 @@ def test_inverse_variance_known_answers_and_scatter():
     sa, sb = rng.uniform(0.5, 2, 20000), rng.uniform(0.5, 2, 20000)
     f, s, _ = inverse_variance(rng.normal(0, sa), sa, rng.normal(0, sb), sb)
     assert abs(np.std(f / s) - 1) < 0.02
+    # a σ that is huge, infinite or tiny (a point the map barely constrains, or a perfect one)
+    # weighs nothing or everything, without an overflow (warnings are errors here; pollen_pot1
+    # in CI once gave one)
+    f, s, wb = inverse_variance(np.zeros(3), [1.0, 1e-200, 1e300], np.ones(3),
+                                [1e300, 1.0, np.inf])
+    assert np.allclose(f, [0.0, 0.0, 0.0]) and np.allclose(s, [1.0, 1e-200, 1e300])
+    assert np.allclose(wb, 0.0)
+    f, s, wb = inverse_variance(np.zeros(1), [1e300], np.ones(1), [1e-300])
+    assert f[0] == 1.0 and s[0] == 1e-300 and wb[0] == 1.0
     with pytest.raises(SemlabError, match="one σ per row"):
         inverse_variance(a, [1.0], b, [1.0])
 
