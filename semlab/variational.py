@@ -98,9 +98,11 @@ class VariationalParams:
         bias ``A⁻¹ Gᵀ W G d̂`` (default: the pull of the smoothing at band walls, which the
         posterior of a locally linearised model misses), the posterior alone, the noise only
         (``A⁻¹ D A⁻¹``, misses the smoothing bias) or the noise plus the bias.
-    solver : {"cg", "direct"}
-        Each IRLS system and the posterior samples solved by Jacobi-preconditioned conjugate
-        gradients (``cg_iter``, ``cg_tol``) or exactly by a sparse LU factor
+    solver : {"amg", "cg", "direct"}
+        Each IRLS system and the posterior samples solved by conjugate gradients
+        (``cg_iter``, ``cg_tol``) preconditioned by algebraic multigrid (default, ``pyamg``;
+        one hierarchy serves all the posterior samples and the bias) or by Jacobi (the same
+        answer to the tolerance, ~2–3× slower), or exactly by a sparse LU factor
         (``scipy.sparse.linalg.splu``, minimum-degree ordering; one factor serves all the
         posterior samples and the bias; ~2 s per 320² window).
     """
@@ -121,7 +123,7 @@ class VariationalParams:
     prior_scale_px: float | None = None
     prior_window_px: int = 15
     sigma_mode: str = "posterior+bias"
-    solver: str = "cg"
+    solver: str = "amg"
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
@@ -281,23 +283,49 @@ def _diff_matrix(shape, axis):
     return sparse.kron(d1, sparse.identity(m), format="csr")
 
 
-def _factor(D, wh, wv):
-    """Sparse LU factor of ``A = diag(D) + Gᵀ W G``: a function ``b -> A⁻¹ b``."""
+def _matrix(D, wh, wv):
+    """``A = diag(D) + Gᵀ W G`` as a sparse CSR matrix on the C-ordered grid of ``D``."""
     from scipy import sparse
-    from scipy.sparse.linalg import splu
 
     gh, gv = _diff_matrix(D.shape, 1), _diff_matrix(D.shape, 0)
-    A = (sparse.diags(D.ravel()) + gh.T @ sparse.diags(wh.ravel()) @ gh
-         + gv.T @ sparse.diags(wv.ravel()) @ gv)
-    lu = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options=dict(SymmetricMode=True))
+    return (sparse.diags(D.ravel()) + gh.T @ sparse.diags(wh.ravel()) @ gh
+            + gv.T @ sparse.diags(wv.ravel()) @ gv).tocsr()
+
+
+def _factor(D, wh, wv):
+    """Sparse LU factor of ``A = diag(D) + Gᵀ W G``: a function ``b -> A⁻¹ b``."""
+    from scipy.sparse.linalg import splu
+
+    lu = splu(_matrix(D, wh, wv).tocsc(), permc_spec="MMD_AT_PLUS_A",
+              options=dict(SymmetricMode=True))
     return lambda b: lu.solve(np.asarray(b, float).ravel()).reshape(D.shape)
 
 
+def _amg(D, wh, wv, n_iter, tol):
+    """Conjugate gradients preconditioned by a classical (Ruge–Stüben) algebraic multigrid
+    hierarchy of ``A`` (``pyamg``): a function ``b, x0 -> A⁻¹ b`` to the relative residual
+    ``tol``. ``A`` is a diagonal plus a weighted grid Laplacian (an M-matrix, what classical
+    AMG is made for): 5–10 iterations instead of Jacobi's ~170 on a 384×512 view."""
+    import pyamg
+
+    ml = pyamg.ruge_stuben_solver(_matrix(D, wh, wv))
+
+    def solve(b, x0=None):
+        b = np.asarray(b, float)
+        x = ml.solve(b.ravel(), x0=None if x0 is None else np.asarray(x0, float).ravel(),
+                     tol=tol, maxiter=int(n_iter), accel="cg")
+        return x.reshape(b.shape)
+    return solve
+
+
 def _linear_solver(D, wh, wv, prm):
-    """``b, x0 -> A⁻¹ b`` by the method of ``prm.solver`` (one factor reused for all b)."""
+    """``b, x0 -> A⁻¹ b`` by the method of ``prm.solver`` (one factor or multigrid hierarchy
+    reused for all b)."""
     if prm.solver == "direct":
         f = _factor(D, wh, wv)
         return lambda b, x0=None: f(b)
+    if prm.solver == "amg":
+        return _amg(D, wh, wv, prm.cg_iter, prm.cg_tol)
     return lambda b, x0=None: _cg(D, wh, wv, b, np.zeros_like(b) if x0 is None else x0,
                                   prm.cg_iter, prm.cg_tol)
 
@@ -427,8 +455,8 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     from .heightmap import _check_roi
 
     prm = params or VariationalParams()
-    if prm.solver not in ("cg", "direct"):
-        raise SemlabError(f"VariationalParams.solver must be 'cg' or 'direct', got "
+    if prm.solver not in ("amg", "cg", "direct"):
+        raise SemlabError(f"VariationalParams.solver must be 'amg', 'cg' or 'direct', got "
                           f"{prm.solver!r}")
     if prm.sigma_mode not in ("posterior", "noise", "noise+bias", "posterior+bias"):
         raise SemlabError(f"VariationalParams.sigma_mode must be 'posterior', 'noise', "

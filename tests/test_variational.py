@@ -72,17 +72,18 @@ def test_sigma_covers_the_error(flat_low_texture):
     assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
 
 
-def test_direct_solver_matches_converged_cg(flat_low_texture):
+def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture):
     v0, v1, true, sub, x = flat_low_texture
     p0 = np.where(sub.valid, sub.x1_px - x, np.nan)
-    tight = va.VariationalParams(cg_iter=3000, cg_tol=1e-10)
+    tight = va.VariationalParams(solver="cg", cg_iter=3000, cg_tol=1e-10)
     par_c, sig_c, _ = va.refine_parallax(v0, v1, p0, params=tight)
-    par_d, sig_d, _ = va.refine_parallax(v0, v1, p0, params=va.VariationalParams(
-        solver="direct"))
     inner = (slice(12, -12), slice(12, -12))
-    assert np.nanmax(np.abs(par_d - par_c)[inner]) < 1e-3
-    # same posterior samples (one seed), so the σ agree closely too
-    assert np.nanmax(np.abs(sig_d / sig_c - 1)[inner]) < 1e-2
+    for solver in ("direct", "amg"):
+        par_d, sig_d, _ = va.refine_parallax(v0, v1, p0, params=va.VariationalParams(
+            solver=solver))
+        assert np.nanmax(np.abs(par_d - par_c)[inner]) < 1e-3, solver
+        # same posterior samples (one seed), so the σ agree closely too
+        assert np.nanmax(np.abs(sig_d / sig_c - 1)[inner]) < 1e-2, solver
     # the exact solve of A x = b
     rng = np.random.default_rng(0)
     D, wh, wv = rng.random((30, 40)), rng.random((30, 39)), rng.random((29, 40))
