@@ -410,7 +410,10 @@ def test_auto_match_tall_object_hundreds_of_px_parallax():
     assert np.ptp(par) > 200
     n_valid = {}
     for below in (0.0, 0.5):
-        m = auto_match(ims, progress=False, dense_prior_below=below)
+        # the priors' test: the subset matches (stage 9 on these 768×1024 views costs as
+        # much again; with below=0.5 the dense prior's view skips it anyway; its 3σ test has
+        # its own test below)
+        m = auto_match(ims, progress=False, dense_prior_below=below, variational_fusion=False)
         v = m.only_valid()
         x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], tilts[0])
         err = np.hypot(*(v.pts[:, 1] - sc.project(x, y, tilts[1])).T)
@@ -616,6 +619,32 @@ def test_points_seen_in_three_of_four_views_pass_the_multiview_test():
     assert not (vv[inside, 2] & vv[inside, 1]).any()         # no 3-view point with view 2
     outside = (x > 30 + 15) & (x < w // 2 - 30) & ((y < 50 - 15) | (y > 150 + 15))
     assert (vv[outside, 1] & vv[outside, 2]).mean() > 0.5    # ... where view 2 is right
+
+
+def test_variational_stage_keeps_the_subset_match_where_the_map_is_off(monkeypatch):
+    """Stage 9's 3σ test: where the variational map is off the subset match by far more than
+    3σ (a tall object's parallax the map misses by pixels), the subset match stays exactly;
+    where the map is close, the point moves to the average."""
+    from dataclasses import replace
+
+    import semlab.variational as va
+
+    sc = Scene(seed=2, shape=(120, 160))
+    ims = [sc.render(TILTS[0], noise=0.05, seed=1), sc.render(TILTS[1], noise=0.05, seed=2)]
+    kw = dict(spacing_px=8, progress=False)
+    off = auto_match(ims, variational_fusion=False, **kw)
+    real = va.variational_parallax
+    for shift, moved in ((3.0, False), (0.0, True)):
+        monkeypatch.setattr(va, "variational_parallax", lambda *a, _s=shift, **k: replace(
+            real(*a, **k), x1_px=real(*a, **k).x1_px + _s))
+        on = auto_match(ims, **kw)
+        ok = off.valid
+        assert np.array_equal(on.valid, ok)
+        d = np.abs(on.pts[ok, 1] - off.pts[ok, 1]).max(axis=1)
+        if moved:       # averaged: the points move (by a fraction of their σ)
+            assert np.median(d) > 1e-3 and np.median(d) < np.median(off.sigma_px[ok])
+        else:           # 3 px off: no point averaged, positions and σ of the subsets
+            assert d.max() == 0 and np.array_equal(on.sigma_px, off.sigma_px, equal_nan=True)
 
 
 def test_variational_stage_lowers_the_height_error():

@@ -532,7 +532,9 @@ def test_real_pollen_substrate_x_scale_checks_the_tilts():
 
     d = shared_path("real_sem", "pollen_pot1")
     ims = [read_image(d / f"pot1_0{i}.jpg").data for i in (2, 3)]
-    m = auto_match(ims, progress=False).only_valid()
+    # the tilts' test: the subset matches (stage 9's variational map of these views would
+    # double the test's time and move the points by a fraction of their σ)
+    m = auto_match(ims, progress=False, variational_fusion=False).only_valid()
     sub = np.hypot(m.pts[:, 0, 0] - 395.0, m.pts[:, 0, 1] - 355.0) > 405.0  # outside the grain
     assert sub.sum() >= 10
     # the substrate's x matching σ from the 4-view residuals (benchmarks/reference_surface.py);
