@@ -13,8 +13,9 @@ not a run option.
 
 At the sparse points of automatic matching the two estimates are combined instead
 (:func:`inverse_variance`, stage 9 of :func:`semlab.matching.auto_match`): there the
-average beats the subset matches on every cell of the accuracy matrix measured (README,
-"Subset and variational estimates averaged at the points").
+average beats the subset matches on fifteen of the sixteen accuracy-matrix cells measured
+(README,
+"Stage 9: the subset matches averaged with the variational map at the points").
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def inverse_variance(a, sigma_a, b, sigma_b):
         ``sqrt(w² σ_a² + (1 − w)² σ_b²)``: the 1σ of the average when the two errors are
         uncorrelated, which the two estimates from the same pixels are not in general. At the
         points of :func:`semlab.matching.auto_match` this σ about holds (66–81 % of the
-        errors within 1σ, 91–96 % within 2σ on nine cells of the accuracy matrix), because
+        errors within 1σ, 91–97 % within 2σ on sixteen cells of the accuracy matrix), because
         the subset and variational σ it combines are each conservative there.
     weight_b : (N,) array
         ``1 − w`` (0 where ``b`` was not used, 1 where only ``b`` was).

@@ -315,12 +315,12 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         Run the epipolar stage 6b (the forward–backward check of its points is along the
         epipolar direction too).
     variational_fusion : bool
-        Run stage 9. Measured (``benchmarks/variational_points.py``, 2026-12-03) on nine
-        384×512 cells of the accuracy matrix (speckle, polished, real FEI and quartz
+        Run stage 9. Measured (``benchmarks/variational_points.py``, 2026-12-03/04) on
+        sixteen 384×512 cells of the accuracy matrix (speckle, polished, real FEI and quartz
         textures; low and realistic noise; ±5° and 0/+8°), at the same points: height RMSE
-        0.68–0.90× OpenCV DeepFlow's where the subset matches alone are 0.76–1.04× (better
-        on all nine) and the variational map alone 0.77–0.93× (better on eight), with 66–81 %
-        of the errors within 1σ and 91–96 % within 2σ. It costs one variational map per view
+        0.68–0.97× OpenCV DeepFlow's where the subset matches alone are 0.76–1.32× (better
+        on fifteen) and the variational map alone 0.77–1.11× (better on thirteen), with 66–81 %
+        of the errors within 1σ and 91–97 % within 2σ. It costs one variational map per view
         pair: ``auto_match`` takes 3–5× as long (single thread, 2026-12-04: the 384×512 demo
         pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). False: the subset
         matches alone.
