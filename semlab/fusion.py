@@ -14,8 +14,7 @@ not a run option.
 At the sparse points of automatic matching the two estimates are combined instead
 (:func:`inverse_variance`, stage 9 of :func:`semlab.matching.auto_match`): there the
 average beats the subset matches on fifteen of the sixteen accuracy-matrix cells measured
-(README,
-"Stage 9: the subset matches averaged with the variational map at the points").
+(README, "Stage 9: the subset matches averaged with the variational map at the points").
 """
 
 from __future__ import annotations
