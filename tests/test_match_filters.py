@@ -48,7 +48,8 @@ def test_forward_backward_stage_removes_mismatched_spots():
     sc, ims = _spotted_pair()
     gross = {}
     for name, kw in (("on", {}), ("off", dict(backward_px=None))):
-        _, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), TILTS, 1)
+        m = auto_match(ims, progress=False, variational_fusion=False, **kw)
+        _, e = _view_errors(sc, m, TILTS, 1)
         gross[name] = int((e > 0.5).sum())
     assert gross["off"] >= 2 * gross["on"] + 10, gross
 
@@ -69,7 +70,8 @@ def test_multiview_stage_removes_points_wrong_in_one_view():
     sc, tilts, ims = _three_views_one_wrong()
     n_wrong = {}
     for name, kw in (("on", {}), ("off", dict(multiview_px=None))):
-        v, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), tilts, 2)
+        m = auto_match(ims, progress=False, variational_fusion=False, **kw)
+        v, e = _view_errors(sc, m, tilts, 2)
         n_wrong[name] = int((e > 1.0).sum())
         # the first view pair is right everywhere: only the multi-view test can tell
         _, e1 = _view_errors(sc, v, tilts, 1)
@@ -106,7 +108,8 @@ def test_forward_backward_against_error_bars_keeps_rejecting_mismatched_spots():
     n, gross = {}, {}
     for name, kw in (("fixed", {}), ("sigma", dict(backward_sigma_p=0.99)),
                      ("off", dict(backward_px=None))):
-        _, e = _view_errors(sc, auto_match(ims, progress=False, variational_fusion=False, **kw), TILTS, 1)
+        m = auto_match(ims, progress=False, variational_fusion=False, **kw)
+        _, e = _view_errors(sc, m, TILTS, 1)
         n[name], gross[name] = len(e), int((e > 0.5).sum())
     assert n["sigma"] >= n["fixed"], n
     assert gross["off"] - gross["sigma"] >= 0.75 * (gross["off"] - gross["fixed"]), gross

@@ -635,8 +635,10 @@ def test_variational_stage_keeps_the_subset_match_where_the_map_is_off(monkeypat
     off = auto_match(ims, variational_fusion=False, **kw)
     real = va.variational_parallax
     for shift, moved in ((3.0, False), (0.0, True)):
-        monkeypatch.setattr(va, "variational_parallax", lambda *a, _s=shift, **k: replace(
-            real(*a, **k), x1_px=real(*a, **k).x1_px + _s))
+        def shifted(*a, _s=shift, **k):
+            dm = real(*a, **k)
+            return replace(dm, x1_px=dm.x1_px + _s)
+        monkeypatch.setattr(va, "variational_parallax", shifted)
         on = auto_match(ims, **kw)
         ok = off.valid
         assert np.array_equal(on.valid, ok)
