@@ -102,8 +102,8 @@ class VariationalParams:
         Each IRLS system and the posterior samples solved by conjugate gradients
         (``cg_iter``, ``cg_tol``) preconditioned by algebraic multigrid (default, ``pyamg``;
         one hierarchy serves all the posterior samples and the bias) or by Jacobi (the same
-        answer to the tolerance, ~2–3× slower), or exactly by a sparse LU factor
-        (``scipy.sparse.linalg.splu``, minimum-degree ordering; one factor serves all the
+        answer to the tolerance; 1.8× slower on the 384×512 demo pair), or exactly by a sparse
+        LU factor (``scipy.sparse.linalg.splu``, minimum-degree ordering; one factor serves all the
         posterior samples and the bias; ~2 s per 320² window).
     """
 
