@@ -71,12 +71,15 @@ class AnalysisConfig:
     seed : int
         Seed of the bootstrap.
     stereo_target_sigma_px : float or None
-        The predicted 1σ (pixels) that each stereo match's subset is sized to reach, in the
-        automatic grid and in the refinement of clicks (``auto_match`` and
-        ``refine_correspondences(target_sigma_px=...)``, :func:`semlab.adaptive.adaptive_icgn`;
+        The predicted 1σ (pixels) that each refined click's subset is sized to reach
+        (``refine_correspondences(target_sigma_px=...)``, :func:`semlab.adaptive.adaptive_icgn`;
         default 0.05, issue #13); None (``--set stereo_target_sigma_px=none``): fixed 21×21
-        subsets, the automatic default before 2026-12-03 (faster: see the README's cost of
-        the sizing on large views).
+        subsets. Until 2026-12-04 it sized the automatic grid too.
+    stereo_grid_target_sigma_px : float or None
+        The same for the automatic grid and the tilt matches (``auto_match``); default None:
+        fixed 21×21 subsets, whose matches stage 9 averages with the variational map (see
+        :class:`semlab.matching.AutoMatchParams`, ``target_sigma_px``, for why); e.g.
+        ``--set stereo_grid_target_sigma_px=0.05`` sizes them as from 2026-12-03 to 12-04.
     track_method : {"subset", "lk"}
         IC-GN subsets (default) or pyramidal Lucas–Kanade for the tracking steps. On the
         8-frame polished / real:fei / real:quartz series of
@@ -110,6 +113,7 @@ class AnalysisConfig:
     n_boot: int = 200
     seed: int = 0
     stereo_target_sigma_px: float | str | None = 0.05
+    stereo_grid_target_sigma_px: float | str | None = None
     track_method: str = "subset"
     track_target_sigma_px: float | str | None = "auto"
     gauge_length_px: float | None = None
@@ -134,11 +138,12 @@ class AnalysisConfig:
                               "raw, refined, auto, merged (or None)")
         if self.track_method not in TRACK_METHODS:
             raise SemlabError(f"track_method = {self.track_method!r}: use 'lk' or 'subset'")
-        t = self.stereo_target
-        if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool)
-                                  and math.isfinite(t) and t > 0):
-            raise SemlabError(f"stereo_target_sigma_px = {t!r}: give a target > 0 pixels, "
-                              "or None (fixed 21×21 subsets)")
+        for key, t in (("stereo_target_sigma_px", self.stereo_target),
+                       ("stereo_grid_target_sigma_px", self.stereo_grid_target)):
+            if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool)
+                                      and math.isfinite(t) and t > 0):
+                raise SemlabError(f"{key} = {t!r}: give a target > 0 pixels, "
+                                  "or None (fixed 21×21 subsets)")
         t = self.track_target
         if t is not None and not (self.track_method == "subset" and isinstance(t, (int, float))
                                   and not isinstance(t, bool) and t > 0):
@@ -159,6 +164,11 @@ class AnalysisConfig:
     def stereo_target(self):
         """``stereo_target_sigma_px`` with ``"none"`` (from ``--set``) as None."""
         return _none_word(self.stereo_target_sigma_px)
+
+    @property
+    def stereo_grid_target(self):
+        """``stereo_grid_target_sigma_px`` with ``"none"`` as None."""
+        return _none_word(self.stereo_grid_target_sigma_px)
 
     @property
     def track_target(self):
@@ -197,7 +207,8 @@ class AnalysisConfig:
 
     def for_step(self, step):
         """The settings ``step`` depends on (with those of the steps it uses)."""
-        own = {"stereo": ("stereo_method", "n_boot", "seed", "stereo_target"),
+        own = {"stereo": ("stereo_method", "n_boot", "seed", "stereo_target",
+                           "stereo_grid_target"),
                "heightmap": ("heightmap_roi", "heightmap_method"),
                "tracking": ("track_method", "track_target"),
                "strain": ("gauge_length_px",)}
@@ -509,10 +520,10 @@ class Analysis:
         params = dict(cfg.for_step("stereo"), stereo_method=m, n_boot=n_boot)
 
         def compute():
-            size = {"target_sigma_px": cfg.stereo_target}
             res = pipeline.run_stereo(exp, method=m, n_boot=n_boot, seed=cfg.seed,
                                       progress=self.progress, tilt_matches=self.tilt_matches(),
-                                      refine_kw=size, auto_kw=size)
+                                      refine_kw={"target_sigma_px": cfg.stereo_target},
+                                      auto_kw={"target_sigma_px": cfg.stereo_grid_target})
             res.calibration["analysis_config"] = cfg.as_dict()
             return res
 
@@ -527,8 +538,8 @@ class Analysis:
         st = self.experiment.stereo
         if st is None or st.tilt_deg is not None or len(st.view_paths) < 3:
             return None
-        t = self.config.stereo_target
-        return self._cached("tilt_matches", {"stereo_target": t},
+        t = self.config.stereo_grid_target
+        return self._cached("tilt_matches", {"stereo_grid_target": t},
                             lambda: pipeline.match_for_tilts(
                                 self.experiment, progress=self.progress,
                                 auto_kw={"target_sigma_px": t}))

@@ -117,7 +117,7 @@ class AutoMatchParams:
     max_features: int = 5000
     backward_px: float = 0.1
     dense_prior_below: float = 0.5
-    target_sigma_px: float = 0.05
+    target_sigma_px: float = None
     max_half_window: int = 28
     epipolar: bool = True
     backward_sigma_p: float = None
@@ -297,7 +297,17 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
     target_sigma_px, max_half_window : float or None, int
         Size each grid point's subset by its information, from ``half_window`` up to
         ``max_half_window`` (see :func:`refine_correspondences`); the forward–backward
-        check uses each point's own subset. None: one fixed ``half_window``.
+        check uses each point's own subset. None (default since 2026-12-04; 0.05 from
+        2026-12-03): one fixed ``half_window``. Why: with ``variational_fusion`` the
+        variational map is the estimate that pools information over a large support, and
+        the subset is the one that resolves the relief; subsets grown for noise carry the
+        same smoothing bias as the map, and the average gains less. On the 16 textured
+        cells of ``benchmarks/accuracy_matrix.py``, seeds 0 and 1 (2026-12-04), fixed
+        subsets with stage 9 against sized ones with stage 9: ratio to DeepFlow at the same
+        points ≤ 0.75× on 11 of 32 cell-seeds against 4 (geometric mean 0.80 / 0.85 against
+        0.83 / 0.86), better on the real textures (quartz on 7, FEI on 5 of 8 cell-seeds)
+        and 0–9 % worse on ``polished``; 60–75 % within 1σ on 24 against 15 and ≥ 93 %
+        within 2σ on 31 against 29 (README, "Stage 9 and the grid's subset size").
     curvature_neighbours : int or None
         With ``target_sigma_px``: size each grid point by its predicted total error, the
         noise σ and the curvature bias estimated from how its match moves with the subset

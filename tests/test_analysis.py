@@ -66,18 +66,21 @@ def test_tracking_with_subsets_sized_by_information(computed):
 
 
 def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monkeypatch):
-    """The default stereo matching sizes each subset to 0.05 px (automatic grid and refined
-    clicks, recorded in calibration.json); `none` gives fixed subsets and recomputes the
-    heights."""
+    """By default the refined clicks' subsets are sized to 0.05 px and the automatic grid's
+    are fixed (stage 9 pools the information; recorded in calibration.json); each has its
+    own setting, and a changed setting recomputes the heights."""
     exp, out, an, _ = computed
-    assert an.config.stereo_target == 0.05
+    assert an.config.stereo_target == 0.05 and an.config.stereo_grid_target is None
     cal = json.loads((out / "calibration.json").read_text())
-    assert cal["auto_match_params"]["target_sigma_px"] == 0.05
+    assert cal["auto_match_params"]["target_sigma_px"] is None
     assert cal["analysis_config"]["stereo_target_sigma_px"] == 0.05
+    assert cal["analysis_config"]["stereo_grid_target_sigma_px"] is None
     assert semlab.AnalysisConfig(stereo_target_sigma_px="none").stereo_target is None
-    for bad in (0, -0.1, float("nan"), "small", True):
-        with pytest.raises(semlab.SemlabError, match="stereo_target_sigma_px"):
-            semlab.AnalysisConfig(stereo_target_sigma_px=bad)
+    assert semlab.AnalysisConfig(stereo_grid_target_sigma_px="None").stereo_grid_target is None
+    for key in ("stereo_target_sigma_px", "stereo_grid_target_sigma_px"):
+        for bad in (0, -0.1, float("nan"), "small", True):
+            with pytest.raises(semlab.SemlabError, match=key):
+                semlab.AnalysisConfig(**{key: bad})
     seen = []
     real = pipeline.match_views
 
@@ -87,11 +90,11 @@ def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monk
 
     monkeypatch.setattr(pipeline, "match_views", spy)
     fixed = semlab.Analysis(exp, out.parent / "fixed", n_boot=0, stereo_target_sigma_px="none",
-                            heightmap=False, progress=False)
+                            stereo_grid_target_sigma_px=0.05, heightmap=False, progress=False)
     res = fixed.stereo()
     assert fixed.computed == ["stereo"]
-    assert seen == [({"target_sigma_px": None}, {"target_sigma_px": None})]
-    assert res.calibration["auto_match_params"]["target_sigma_px"] is None
+    assert seen == [({"target_sigma_px": None}, {"target_sigma_px": 0.05})]
+    assert res.calibration["auto_match_params"]["target_sigma_px"] == 0.05
 
 
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,
