@@ -81,6 +81,8 @@ from scipy import ndimage
 
 from semlab import experiment, pipeline, realtex, reconstruct, synth, validation
 
+from bench_args import variational_params
+
 REGIMES = ("speckle", "polished", "featureless", "real:fei", "real:quartz")
 NOISES = ("low", "realistic")
 PAIRS = ((-5.0, 5.0), (0.0, 8.0))
@@ -149,9 +151,10 @@ class Heights:
     seconds: float
 
 
-def semlab_variants():
+def semlab_variants(vparams=None):
     """(point set, method, matching keywords) of the semlab rows: fixed subsets, and the
-    information-sized (adaptive) subsets where this semlab has them."""
+    information-sized (adaptive) subsets where this semlab has them; ``vparams``: the
+    automatic sets' stage-9 ``variational_params`` (``--var``)."""
     from semlab import matching
 
     params = getattr(matching, "AutoMatchParams", None)
@@ -171,6 +174,9 @@ def semlab_variants():
                                                      "curvature_neighbours": None}})
         out.append(("auto total", "auto", {"auto": {"target_sigma_px": 0.0,
                                                     "curvature_neighbours": 1}}))
+    if vparams is not None:
+        out = [(n, m, {**kw, "auto": {**kw["auto"], "variational_params": vparams}})
+               if "auto" in kw else (n, m, kw) for n, m, kw in out]
     return out
 
 
@@ -314,15 +320,15 @@ def with_gauge(cells, sfx):
     return out
 
 
-def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None):
+def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams=None):
     """Rows of one cell; ``sets``: only the semlab point sets whose name starts with one of
-    these (e.g. ``("clicks",)``), default all."""
+    these (e.g. ``("clicks",)``), default all; ``vparams``: see :func:`semlab_variants`."""
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
     v0, v1 = exp.views()[:2]
     flows, _ = dense_flows(v0, v1)
     clean = clean_view0(exp, regime, seed, size)
     rows = []
-    variants = [v for v in semlab_variants()
+    variants = [v for v in semlab_variants(vparams)
                 if sets is None or any(v[0].startswith(k) for k in sets)]
     for set_name, method, match_kw in variants:
         try:
@@ -442,7 +448,11 @@ def main(argv=None):
     ap.add_argument("--sets", default=None,
                     help="only these semlab point sets (and the references at their points), "
                     "comma-separated prefixes: clicks, auto")
+    ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
+                    help="a semlab.variational.VariationalParams field of the automatic sets' "
+                    "stage 9, e.g. --var norm_sigma_px=5 (repeatable)")
     args = ap.parse_args(argv)
+    vparams = variational_params(args.var) if args.var else None
     subset = args.cells is not None or args.sets is not None
     if args.out is None:
         args.out = RESULTS.with_name("accuracy_matrix_quick.md") if args.quick else (
@@ -463,7 +473,7 @@ def main(argv=None):
             tc = time.perf_counter()
             cells.append(((regime, noise, tilts),
                           run_cell(tmp, regime, noise, tilts, args.seed, size, n_clicks,
-                                   sets)))
+                                   sets, vparams)))
             print(f"{regime} {noise} {tilts}: {time.perf_counter() - tc:.0f} s", flush=True)
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     cmd = " ".join(["python benchmarks/accuracy_matrix.py"] + (argv if argv is not None

@@ -38,6 +38,8 @@ from scipy import ndimage
 from semlab import experiment, fusion, heightmap, pipeline, synth, variational
 from semlab.matching import _norm8
 
+from bench_args import variational_params
+
 BORDER = 20
 
 
@@ -175,7 +177,7 @@ def main(argv=None):
                     help="a VariationalParams field of the variational map, e.g. "
                          "--var smooth_huber=0.2 --var solver=direct (repeatable)")
     args = ap.parse_args(argv)
-    vparams = _vparams(args.var)
+    vparams = variational_params(args.var)
     print(f"variational params: {vparams}")
     rows = []
     sc = scenes(args.quick)
@@ -225,30 +227,6 @@ def main(argv=None):
     if subset:
         _split_table(rows, "semlab", lambda r: r)
     return rows
-
-
-def _vparams(items):
-    """``VariationalParams`` from ``KEY=VALUE`` strings (values typed like the defaults)."""
-    import dataclasses
-
-    fields = {f.name: f for f in dataclasses.fields(variational.VariationalParams)}
-    kw = {}
-    for it in items:
-        key, _, val = it.partition("=")
-        if key not in fields:
-            raise SystemExit(f"--var {it}: unknown VariationalParams field {key!r}")
-        default = fields[key].default
-        if val.lower() == "none":
-            kw[key] = None
-        elif isinstance(default, bool):
-            kw[key] = val.lower() in ("1", "true", "yes")
-        elif isinstance(default, int):
-            kw[key] = int(val)
-        elif isinstance(default, float) or default is None:
-            kw[key] = float(val)
-        else:
-            kw[key] = val
-    return variational.VariationalParams(**kw)
 
 
 def _split_table(rows, label, metrics):

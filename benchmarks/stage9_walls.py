@@ -10,12 +10,14 @@ wall). Per part: height RMSE, share of the average's squared error, and the frac
 correlation of the subset match's error with the map's, for fixed and for noise-sized subsets.
 
 Run:  python benchmarks/stage9_walls.py [--cells polished/realistic/-5/5,polished/low/-5/5]
+                                        [--var KEY=VALUE ...]  (the maps' VariationalParams)
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 import tempfile
 from pathlib import Path
 
@@ -24,6 +26,7 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
+from bench_args import variational_params  # noqa: E402
 
 from semlab import fusion, reconstruct, validation, variational  # noqa: E402
 
@@ -38,19 +41,19 @@ def _errors(exp, pts, tilts):
     return 1000 * validation.height_errors(z, zt, pts[:, 0], plane="lsq")["err_um"]
 
 
-def _map_at(v0, v1, seeds, p0, mode):
+def _map_at(v0, v1, seeds, p0, mode, vparams):
     dm = variational.variational_parallax(v0, v1, seeds=seeds,
-                                          params=variational.VariationalParams(sigma_mode=mode))
+                                          params=replace(vparams, sigma_mode=mode))
     xy1, s = fusion.sample_parallax(dm, p0)
     return np.stack([p0, xy1], 1), s
 
 
-def run(cell, tmp):
+def run(cell, tmp, vparams):
     regime, noise, t0, t1 = cell.split("/")
     tilts = (float(t0), float(t1))
     exp = am.make_cell(tmp, regime, noise, tilts)
     v0, v1 = exp.views()[:2]
-    fused = am.semlab_heights(exp, "auto")
+    fused = am.semlab_heights(exp, "auto", auto={"variational_params": vparams})
     sub = am.semlab_heights(exp, "auto", auto={"variational_fusion": False})
     p0 = sub.pts[:, 0]
     z = 1000 * np.load(exp.truth_dir / "height_view0.npy")
@@ -61,13 +64,13 @@ def run(cell, tmp):
     e = {"average": _errors(exp, fused.pts, tilts), "subsets": _errors(exp, sub.pts, tilts)}
     sig = {}
     for mode in ("posterior+bias", "noise+bias"):
-        pts, s = _map_at(v0, v1, sub.pts, p0, mode)
+        pts, s = _map_at(v0, v1, sub.pts, p0, mode, vparams)
         e["map"], sig[mode] = _errors(exp, pts, tilts), nm_per_px * s
     flows, _ = am.dense_flows(v0, v1)
     e["DeepFlow"] = _errors(exp, am.reference_matches(v0, v1, p0, flows)["DeepFlow"], tilts)
     sized = am.semlab_heights(exp, "auto", auto={"variational_fusion": False,
                                                  "target_sigma_px": 0.05})
-    pts_s, _ = _map_at(v0, v1, sized.pts, sized.pts[:, 0], "posterior+bias")
+    pts_s, _ = _map_at(v0, v1, sized.pts, sized.pts[:, 0], "posterior+bias", vparams)
     corr = {"fixed": np.corrcoef(e["subsets"], e["map"])[0, 1],
             "sized": np.corrcoef(_errors(exp, sized.pts, tilts), _errors(exp, pts_s, tilts))[0, 1]}
     lines = [f"### {cell}", "",
@@ -93,10 +96,14 @@ def run(cell, tmp):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cells", default=",".join(CELLS))
+    ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
+                    help="a VariationalParams field of the maps (stage 9's and the map "
+                    "alone's), e.g. --var norm_sigma_px=5 (repeatable)")
     args = ap.parse_args(argv)
+    vparams = variational_params(args.var)
     with tempfile.TemporaryDirectory() as tmp:
         for cell in args.cells.split(","):
-            print(run(cell, tmp) + "\n", flush=True)
+            print(run(cell, tmp, vparams) + "\n", flush=True)
 
 
 if __name__ == "__main__":

@@ -90,7 +90,7 @@ class AutoMatchParams:
     ``target_sigma_px``, ``max_half_window``, ``curvature_neighbours``, ``band_aware``, ``band_half_width_px``,
     ``kappa``, ``epipolar``), filters (``min_texture_snr``, ``min_zncc``, ``consistency_px``,
     ``max_roughness_px``, ``backward_px``, ``backward_sigma_p``, ``multiview_px``), estimate
-    (``variational_fusion``).
+    (``variational_fusion``, ``variational_params``).
     """
 
     ref_view: int = 0
@@ -123,6 +123,7 @@ class AutoMatchParams:
     backward_sigma_p: float = None
     curvature_neighbours: int = None
     variational_fusion: bool = True
+    variational_params: "VariationalParams" = None  # noqa: F821
 
 
 def auto_match(images, params=None, *, progress=True, features=None, **overrides):
@@ -334,6 +335,9 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         pair: ``auto_match`` takes 3–5× as long (single thread, 2026-12-04: the 384×512 demo
         pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). False: the subset
         matches alone.
+    variational_params : semlab.variational.VariationalParams, optional
+        Parameters of stage 9's maps (default ``VariationalParams()``); recorded with the
+        others (``asdict`` gives its fields).
 
     Returns
     -------
@@ -808,7 +812,8 @@ def _stage_variational(st):
                              & np.all(np.isfinite(st.out[:, j]), axis=1))
         if len(idx) < 8:        # the map's epipolar relation needs 8 seeds
             continue
-        dm = variational_parallax(st.ims[st.ref], st.ims[j], seeds=st.out[idx][:, [st.ref, j]])
+        dm = variational_parallax(st.ims[st.ref], st.ims[j], seeds=st.out[idx][:, [st.ref, j]],
+                                  params=st.params.variational_params)
         xy1, s1 = sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
         # subset match by more than 3σ of the two (a tall object's hundreds of pixels of
@@ -921,7 +926,14 @@ def _auto_params(params, overrides):
     if unknown:
         raise SemlabError(f"auto_match has no parameter {', '.join(sorted(unknown))}; see "
                           "semlab.matching.AutoMatchParams for the parameters")
-    return replace(p, **overrides) if overrides else p
+    p = replace(p, **overrides) if overrides else p
+    if p.variational_params is not None:
+        from .variational import VariationalParams
+
+        if not isinstance(p.variational_params, VariationalParams):
+            raise SemlabError("variational_params must be a semlab.variational."
+                              f"VariationalParams, got {type(p.variational_params).__name__}")
+    return p
 
 
 # --------------------------------------------------------------------------- merge

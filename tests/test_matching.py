@@ -6,6 +6,7 @@ ribbons 0.1–0.3 µm high. View i at tilt θi shows at pixel (u, v) the materia
 ``x cos θ + z(x, y) sin θ = s (u − cx)``, ``y = s (v − cy)`` (fixed-point iteration).
 """
 
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -647,6 +648,28 @@ def test_variational_stage_keeps_the_subset_match_where_the_map_is_off(monkeypat
             assert np.median(d) > 1e-3 and np.median(d) < np.median(off.sigma_px[ok])
         else:           # 3 px off: no point averaged, positions and σ of the subsets
             assert d.max() == 0 and np.array_equal(on.sigma_px, off.sigma_px, equal_nan=True)
+
+
+def test_variational_stage_takes_its_map_parameters(monkeypatch):
+    """``variational_params`` reaches stage 9's maps (recorded in ``params``); anything but a
+    ``VariationalParams`` is refused with a message naming it."""
+    import semlab.variational as va
+
+    sc = Scene(seed=2, shape=(120, 160))
+    ims = [sc.render(TILTS[0], noise=0.05, seed=1), sc.render(TILTS[1], noise=0.05, seed=2)]
+    seen = []
+    real = va.variational_parallax
+
+    def spy(*a, **k):
+        seen.append(k.get("params"))
+        return real(*a, **k)
+    monkeypatch.setattr(va, "variational_parallax", spy)
+    vp = va.VariationalParams(norm_sigma_px=4.0)
+    m = auto_match(ims, spacing_px=8, progress=False, variational_params=vp)
+    assert seen == [vp] and m.params.variational_params == vp
+    assert asdict(m.params)["variational_params"]["norm_sigma_px"] == 4.0
+    with pytest.raises(SemlabError, match="variational_params must be"):
+        auto_match(ims, spacing_px=8, progress=False, variational_params={"norm_sigma_px": 4})
 
 
 def test_variational_stage_lowers_the_height_error():
