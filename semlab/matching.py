@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -56,6 +57,9 @@ from .noise import image_noise_sigma
 from .refine import refine_correspondences
 from .registration import match_features
 from .subset import icgn_refine, prefilter_image, zncc_match
+
+if TYPE_CHECKING:
+    from .variational import VariationalParams
 
 __all__ = ["MatchResult", "AutoMatchParams", "refine_correspondences", "auto_match",
            "merge_matches", "fit_affine"]
@@ -123,7 +127,7 @@ class AutoMatchParams:
     backward_sigma_p: float = None
     curvature_neighbours: int = None
     variational_fusion: bool = True
-    variational_params: "VariationalParams" = None  # noqa: F821
+    variational_params: VariationalParams | None = None
 
 
 def auto_match(images, params=None, *, progress=True, features=None, **overrides):
