@@ -4,6 +4,8 @@ Run:  python benchmarks/accuracy_matrix.py            # full matrix (394 s on an
       python benchmarks/accuracy_matrix.py --quick    # 3 small cells (< 3 min)
       python benchmarks/accuracy_matrix.py --sets clicks \
           --cells polished/realistic/-5/5,real:fei/realistic/0/8   # some cells, clicks only
+      python benchmarks/accuracy_matrix.py --headline benchmarks/results/accuracy_matrix.md
+                                                      # the README's compact table, no matching
 
 Writes ``benchmarks/results/accuracy_matrix.md`` (``--quick``: ``accuracy_matrix_quick.md``; with
 ``--cells`` or ``--sets``: ``accuracy_matrix_subset.md``;
@@ -386,7 +388,7 @@ def table(cells):
 
 
 def summary(cells):
-    """One line per cell: height RMSE (nm) of every method at the same points (the README's)."""
+    """One line per cell: height RMSE (nm) of every method at the same points (the README's table)."""
     lines = ["| regime | noise | tilts | automatic: semlab (N, coverage) | DeepFlow | ECC 15px "
              "| DIS fine | CRB 21² | adaptive automatic: semlab (N) | DeepFlow "
              "| refined clicks: semlab | ECC 15px | DeepFlow | adaptive refined: semlab | ECC 15px "
@@ -424,6 +426,59 @@ def summary(cells):
     return "\n".join(lines)
 
 
+def headline(markdown):
+    """The README's compact table, from a results file written by this script.
+
+    One row per cell of the first "Every method and column" table (least-squares gauge): the
+    automatic points with ``auto_match``'s defaults (fixed 21×21 subsets and stage 9: semlab's
+    RMSE with its points and coverage, DeepFlow's at the same points, their ratio, the fraction
+    of errors within semlab's 1σ / 2σ and the efficiency) and the refined clicks with
+    ``semlab run``'s default (information-sized subsets, ``clicks adaptive``: semlab's RMSE,
+    within 1σ / 2σ, and ECC 15 px's at the same points).
+
+    Parameters
+    ----------
+    markdown : str
+        The text of a results file (``--out`` of a full or subset run).
+
+    Returns
+    -------
+    str, a markdown table.
+    """
+    lines = markdown.split("\n")
+    try:
+        start = lines.index("## Every method and column")
+    except ValueError:
+        raise SystemExit("--headline: no '## Every method and column' table in that file; give "
+                         "a results file of this script") from None
+    rows = {}
+    for ln in lines[start + 1:]:
+        if ln.startswith("## "):
+            break
+        c = [x.strip() for x in ln.strip().strip("|").split("|")]
+        if len(c) < 14 or c[0] in ("regime", "---"):
+            continue
+        rows.setdefault(tuple(c[:3]), {})[(c[3], c[4])] = c[5:]
+    out = ["| regime | noise | tilts | automatic: semlab RMSE (N, coverage) | DeepFlow "
+           "| ÷ DeepFlow | within 1σ / 2σ | efficiency | refined clicks (sized): semlab "
+           "| within 1σ / 2σ | ECC 15px |", "|" + "---|" * 11]
+    for (regime, noise, tilts), by in rows.items():
+        # each row's columns from RMSE on: RMSE, robust σ, N, coverage, predicted σ,
+        # within 1σ / 2σ, efficiency, ÷ DeepFlow, CRB
+        a = by.get(("auto", "semlab auto"))
+        if a is None or a[0].startswith("failed"):
+            df = by.get(("grid (semlab found none)", "DeepFlow"), ["–"])[0]
+            auto = ["none found", f"{df} (8-px grid)", "–", "–", "–"]
+        else:
+            auto = [f"{a[0]} ({a[2]}, {a[3]})", by.get(("auto", "DeepFlow"), ["–"])[0], a[7],
+                    a[5], a[6]]
+        k = by.get(("clicks adaptive", "semlab refined adaptive"), ["–"] * 9)
+        ecc = by.get(("clicks adaptive", "ECC 15px"), ["–"])[0]
+        out.append(f"| {regime} | {noise} | {tilts} | " + " | ".join(auto)
+                   + f" | {k[0]} | {k[5]} | {ecc} |")
+    return "\n".join(out)
+
+
 def _parse_cell(text):
     """(regime, noise, (t0, t1)) from ``REGIME/NOISE/T0/T1``."""
     parts = text.strip().split("/")
@@ -451,7 +506,17 @@ def main(argv=None):
     ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
                     help="a semlab.variational.VariationalParams field of the automatic sets' "
                     "stage 9, e.g. --var norm_sigma_px=5 (repeatable)")
+    ap.add_argument("--headline", type=Path, default=None, metavar="RESULTS_MD",
+                    help="print the README's compact table from a results file of this "
+                    "script and stop (no matching)")
     args = ap.parse_args(argv)
+    if args.headline is not None:
+        try:
+            text = args.headline.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise SystemExit(f"--headline: cannot read {args.headline}: {exc}") from None
+        print(headline(text))
+        return None
     vparams = variational_params(args.var) if args.var else None
     subset = args.cells is not None or args.sets is not None
     if args.out is None:

@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
                                             [--backward-sigma-p=P] [--total-error] [--fixed]
-      (a few minutes; --figure writes docs/reference_surface_pollen.png, the README's figure;
+      (a few minutes; --figure writes docs/reference_surface_pollen.png, the figure of docs/accuracy.md;
       --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1;
       --total-error sizes its grid by the total error: ``target_sigma_px=0,
       curvature_neighbours=1``; --fixed: fixed subsets, ``target_sigma_px=None``)
@@ -63,7 +63,7 @@ POLLEN = ROOT.parent / "shared" / "data" / "real_sem" / "pollen_pot1"
 GRAIN_CENTRE, GRAIN_AXES = np.array([395.0, 352.0]), np.array([310.0, 340.0])
 #: Substrate: outside the ellipse scaled by this (the rim and the shadow are neither).
 SUBSTRATE_R = 1.06
-#: The README figure, written with --figure.
+#: The figure of docs/accuracy.md, written with --figure.
 FIGURE = ROOT / "docs" / "reference_surface_pollen.png" if "--figure" in sys.argv else None
 
 

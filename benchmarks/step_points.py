@@ -1,6 +1,7 @@
 """Where the automatic heights are worst, whether a step of the parallax is visible there,
 and what shiftable windows would gain (issue #13; the opt-in ``auto_match(step_windows=True)``
-that applied them was measured negative and removed, README "Points beside slip-band steps").
+that applied them was measured negative and removed, docs/accuracy.md, "Points beside
+slip-band steps").
 
 Run:  python benchmarks/step_points.py                       # the 5 cells below (~3 min)
       python benchmarks/step_points.py --cells polished/realistic/-5/5

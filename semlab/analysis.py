@@ -106,7 +106,7 @@ class AnalysisConfig:
     heightmap_method : {"subset", "variational"}
         The dense map's parallax: an IC-GN subset at every pixel (default) or the
         variational refinement (:mod:`semlab.variational`: better on weak texture, see the
-        README's dense-map table).
+        dense-map table of docs/accuracy.md).
     """
 
     stereo_method: str | None = None

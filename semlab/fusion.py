@@ -6,15 +6,16 @@ their errors are correlated and an inverse-variance average would understate the
 fusion here is the *minimum-σ choice*: at each pixel keep the estimate with the smaller
 predicted 1σ (a map's value where only it is measured), and keep that estimate's σ.
 
-Measured on the 8 scenes of ``benchmarks/dense_map.py`` (README, "Min-σ fusion of the two
-maps"), it does not beat the better of the two maps: the two σ do not rank their errors
+Measured on the 8 scenes of ``benchmarks/dense_map.py`` (docs/accuracy.md, "Min-σ fusion of the
+two maps"), it does not beat the better of the two maps: the two σ do not rank their errors
 (on speckle the variational σ is smaller on most pixels while its error is larger), so it is
 not a run option.
 
 At the sparse points of automatic matching the two estimates are combined instead
 (:func:`inverse_variance`, stage 9 of :func:`semlab.matching.auto_match`): there the
 average beats the subset matches on fifteen of the sixteen accuracy-matrix cells measured
-(README, "Stage 9: the subset matches averaged with the variational map at the points").
+(docs/accuracy.md, "Stage 9: the subset matches averaged with the variational map at
+the points").
 """
 
 from __future__ import annotations

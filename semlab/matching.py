@@ -312,7 +312,8 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         points ≤ 0.75× on 11 of 32 cell-seeds against 4 (geometric mean 0.80 / 0.85 against
         0.83 / 0.86), better on the real textures (quartz on 7, FEI on 5 of 8 cell-seeds)
         and 0–9 % worse on ``polished``; 60–75 % within 1σ on 24 against 15 and ≥ 93 %
-        within 2σ on 31 against 29 (README, "Stage 9 and the grid's subset size").
+        within 2σ on 31 against 29 (docs/accuracy.md, "Stage 9 and the grid's
+        subset size").
     curvature_neighbours : int or None
         With ``target_sigma_px``: size each grid point by its predicted total error, the
         noise σ and the curvature bias estimated from how its match moves with the subset
