@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from semlab import experiment, fusion, heightmap, pipeline, synth, variational
+from semlab import experiment, fusion, heightmap, pipeline, synth, validation, variational
 from semlab.matching import _norm8
 
 from bench_args import variational_params
@@ -71,13 +71,6 @@ def make(folder, kw):
         synth.make_experiment(folder, write_block=False, **common, **kw)
 
 
-def plane_free(err, mask):
-    yy, xx = np.nonzero(mask)
-    A = np.column_stack([xx, yy, np.ones(len(xx))]).astype(float)
-    c, *_ = np.linalg.lstsq(A, err[mask], rcond=None)
-    return err[mask] - A @ c
-
-
 def deepflow_heights(views, model):
     import cv2
 
@@ -95,17 +88,20 @@ def walls(truth, interior):
     return ndimage.binary_dilation(slope > np.percentile(slope[interior], 85), iterations=3)
 
 
-def _compare(z, sigma, valid, zd, truth, interior):
-    """RMSE of a map and of DeepFlow on the map's measured interior pixels, σ coverage, and
-    the same split into band walls (:func:`walls`) and flat parts."""
-    m = interior & valid
-    e = plane_free(z.astype(float) - truth, m)
-    e_deep = plane_free(zd - truth, m)
+def _compare(z, sigma, valid, zd, folder, truth, interior):
+    """RMSE of a map and of DeepFlow on the map's measured interior pixels
+    (:func:`semlab.validation.heightmap_errors`, the plane of each error removed), σ coverage,
+    and the same split into band walls (:func:`walls`) and flat parts."""
+    r = validation.heightmap_errors(z, sigma, valid, folder, border_px=BORDER)
+    m = r["mask"]
+    e = r["err_um"]
+    e_deep = validation.heightmap_errors(zd, np.ones(zd.shape), m, folder,
+                                         border_px=BORDER)["err_um"]
     sig = sigma[m].astype(float)
     rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
-    out = dict(measured=float(m.sum() / interior.sum()), ours_nm=1e3 * rms(e),
+    out = dict(measured=r["measured"], ours_nm=1e3 * rms(e),
                deep_nm=1e3 * rms(e_deep), ratio=rms(e) / rms(e_deep),
-               in1=float(np.mean(np.abs(e) < sig)), in2=float(np.mean(np.abs(e) < 2 * sig)),
+               in1=r["within_1sigma"], in2=r["within_2sigma"],
                median_sigma_nm=1e3 * float(np.median(sig)))
     w = walls(truth, interior)[m]
     for part, sel in (("wall", w), ("flat", ~w)):
@@ -136,9 +132,9 @@ def run_scene(name, kw, tmp, params=None, subset=True, vparams=None):
     t0 = time.perf_counter()
     zd = deepflow_heights(exp.views(), hv.model)
     out["t_deep"] = time.perf_counter() - t0
-    out["deep_all_nm"] = 1e3 * float(np.sqrt(np.mean(
-        plane_free(zd - truth, interior & np.isfinite(zd)) ** 2)))
-    out["var"] = _compare(hv.z_um, hv.sigma_um, hv.valid, zd, truth, interior)
+    out["deep_all_nm"] = 1e3 * validation.heightmap_errors(
+        zd, np.ones(zd.shape), np.isfinite(zd), folder, border_px=BORDER)["rmse_um"]
+    out["var"] = _compare(hv.z_um, hv.sigma_um, hv.valid, zd, folder, truth, interior)
     from semlab.noise import image_noise_sigma
 
     out["noise"] = [float(v) for v in hv.parallax.calibration.get("noise_sigma", (np.nan,) * 2)]
@@ -155,10 +151,10 @@ def run_scene(name, kw, tmp, params=None, subset=True, vparams=None):
         t0 = time.perf_counter()
         hm = heightmap.heightmap_from_stereo(exp, st, params=params)
         out["t_dense"] = time.perf_counter() - t0
-        out.update(_compare(hm.z_um, hm.sigma_um, hm.valid, zd, truth, interior))
+        out.update(_compare(hm.z_um, hm.sigma_um, hm.valid, zd, folder, truth, interior))
         out["sigma_scale"] = hm.parallax.sigma_scale
         hf = fusion.fuse_heightmaps(hm, hv)
-        out["fused"] = _compare(hf.z_um, hf.sigma_um, hf.valid, zd, truth, interior)
+        out["fused"] = _compare(hf.z_um, hf.sigma_um, hf.valid, zd, folder, truth, interior)
         out["fused"]["from_var"] = float(np.mean(hf.valid & (hf.sigma_um == hv.sigma_um)
                                                  & ~np.isnan(hv.sigma_um)) / hf.valid.mean())
     return out

@@ -118,6 +118,61 @@ def height_errors(z_est_um, z_true_um, xy=None, plane="lsq"):
             "max_um": float(a.max()), "p95_um": float(np.percentile(a, 95)), "n": int(ok.sum())}
 
 
+def heightmap_errors(z_um, sigma_um, valid, truth, roi=None, border_px=20):
+    """Errors of a dense height map against the truth, after removing the plane of the error.
+
+    Parameters
+    ----------
+    z_um, sigma_um : (h, w) arrays
+        The map's heights and 1σ (µm) on the view-0 pixel grid of ``roi``.
+    valid : (h, w) bool array
+        Measured pixels.
+    truth : path of the experiment folder or its ``truth/``
+        Its ``height_view0.npy`` (the true height at every view-0 pixel, µm).
+    roi : (x0, y0, x1, y1), optional
+        Half-open window of view-0 pixels the map covers (default the whole view).
+    border_px : int
+        Pixels along the edges of the *view* left out of the interior scored.
+
+    Returns
+    -------
+    dict
+        ``err_um`` (M,) plane-removed errors of the measured interior pixels (row-major),
+        ``mask`` (h, w) bool array of those pixels, ``rmse_um``, ``measured`` (fraction of the
+        interior measured), ``within_1sigma`` and ``within_2sigma`` (fractions of ``err_um``),
+        ``n``.
+
+    Raises
+    ------
+    SemlabError
+        Map arrays of different shapes, or a ``roi`` that does not match them.
+    """
+    z = np.asarray(z_um, float)
+    s = np.asarray(sigma_um, float)
+    v = np.asarray(valid, bool)
+    if not (z.shape == s.shape == v.shape) or z.ndim != 2:
+        raise SemlabError(f"heightmap_errors: z, sigma and valid must be one (h, w) shape, got "
+                          f"{z.shape}, {s.shape}, {v.shape}")
+    zt = np.load(_truth_dir(truth) / "height_view0.npy").astype(float)
+    hgt, wid = zt.shape
+    x0, y0, x1, y1 = (0, 0, wid, hgt) if roi is None else (int(c) for c in roi)
+    if (y1 - y0, x1 - x0) != z.shape:
+        raise SemlabError(f"heightmap_errors: roi {roi} is {(y1 - y0, x1 - x0)} pixels, the map "
+                          f"{z.shape}")
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    interior = ((xx >= border_px) & (xx < wid - border_px) & (yy >= border_px)
+                & (yy < hgt - border_px))
+    m = interior & v & np.isfinite(z) & np.isfinite(s)
+    if m.sum() < 3:
+        raise SemlabError(f"heightmap_errors: only {int(m.sum())} measured interior pixels")
+    e = height_errors(z[m], zt[y0:y1, x0:x1][m], np.column_stack([xx[m], yy[m]]))
+    err = e["err_um"]
+    return {"err_um": err, "mask": m, "rmse_um": e["rmse_um"],
+            "measured": float(m.sum() / max(int(interior.sum()), 1)),
+            "within_1sigma": float(np.mean(np.abs(err) < s[m])),
+            "within_2sigma": float(np.mean(np.abs(err) < 2 * s[m])), "n": int(m.sum())}
+
+
 def subset_model_bias(field_px, pts, half_window, weight=None, quadratic=False, part=None):
     """Centre bias of square subsets matched on a known displacement field, pixels.
 

@@ -98,3 +98,32 @@ def test_subset_model_bias_known_answers():
         validation.subset_model_bias(lin, pts, 5, part="middle")
     with pytest.raises(SemlabError, match="weight"):
         validation.subset_model_bias(lin, pts, 5, weight=w[:10])
+
+
+def test_heightmap_errors_known_answers(tmp_path):
+    """A map = truth + a plane + white noise of known σ, on a window: the plane is removed, the
+    border and the unmeasured pixels are left out, the RMSE and the σ coverage are the noise's."""
+    rng = np.random.default_rng(1)
+    (tmp_path / "truth").mkdir()
+    hgt, wid = 120, 160
+    zt = rng.normal(0, 0.2, (hgt, wid))
+    np.save(tmp_path / "truth" / "height_view0.npy", zt)
+    roi = (10, 20, 150, 110)                       # (x0, y0, x1, y1): 90 rows, 140 columns
+    yy, xx = np.mgrid[roi[1]:roi[3], roi[0]:roi[2]]
+    noise = rng.normal(0, 0.01, xx.shape)
+    z = zt[roi[1]:roi[3], roi[0]:roi[2]] + 0.3 + 0.002 * xx - 0.001 * yy + noise
+    valid = np.ones(z.shape, bool)
+    valid[:, :30] = False                          # view columns 10..39 not measured
+    r = validation.heightmap_errors(z, np.full(z.shape, 0.01), valid, tmp_path, roi=roi,
+                                    border_px=20)
+    # interior of the view: x 20..139, y 20..99; of the window: x 20..139 (120), y 20..99 (80)
+    measured = (xx >= 40) & (xx < 140) & (yy < 100)
+    assert r["n"] == measured.sum() and r["mask"].sum() == measured.sum()
+    assert r["measured"] == pytest.approx(measured.sum() / (120 * 80))
+    assert r["rmse_um"] == pytest.approx(0.01, rel=0.05)
+    assert r["within_1sigma"] == pytest.approx(0.683, abs=0.03)
+    assert r["within_2sigma"] == pytest.approx(0.954, abs=0.02)
+    with pytest.raises(SemlabError, match="roi"):
+        validation.heightmap_errors(z, z, valid, tmp_path, roi=(0, 0, 140, 90 + 1))
+    with pytest.raises(SemlabError, match="one"):
+        validation.heightmap_errors(z, z[:-1], valid, tmp_path, roi=roi)
