@@ -154,9 +154,9 @@ def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo(scene_pair
 def test_analysis_config_selects_the_method():
     import semlab
 
-    cfg = semlab.AnalysisConfig(heightmap_method="variational")
-    assert cfg.for_step("heightmap")["heightmap_method"] == "variational"
-    assert semlab.AnalysisConfig().heightmap_method == "subset"
+    cfg = semlab.AnalysisConfig(heightmap_method="subset")
+    assert cfg.for_step("heightmap")["heightmap_method"] == "subset"
+    assert semlab.AnalysisConfig().heightmap_method == "variational"   # since 2026-12-05
     with pytest.raises(SemlabError, match="heightmap_method"):
         semlab.AnalysisConfig(heightmap_method="deepflow")
 
