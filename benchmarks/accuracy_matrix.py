@@ -388,7 +388,8 @@ def table(cells):
 
 
 def summary(cells):
-    """One line per cell: height RMSE (nm) of every method at the same points (the README's table)."""
+    """One line per cell: height RMSE (nm) of every method at the same points (the results
+    file's first table; the README's is :func:`headline`)."""
     lines = ["| regime | noise | tilts | automatic: semlab (N, coverage) | DeepFlow | ECC 15px "
              "| DIS fine | CRB 21² | adaptive automatic: semlab (N) | DeepFlow "
              "| refined clicks: semlab | ECC 15px | DeepFlow | adaptive refined: semlab | ECC 15px "

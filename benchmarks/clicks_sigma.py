@@ -28,7 +28,8 @@ Results: ``benchmarks/results/clicks_sigma_diagnosis.md``.
 (:data:`VARIANTS`: subsets sized by the noise alone, ``curvature_neighbours=None``, whose
 σ carries no curvature bias, and the default, sized by the total error with the expected
 squared ladder bias in σ. The before / after of 2026-12-02, ``bias_in_sigma="estimate"``
-against the default, needs a semlab from before that option was removed: docs/accuracy.md and ``benchmarks/results/clicks_sigma_diagnosis.md``.)
+against the default, needs a semlab from before that option was removed: docs/accuracy.md
+and ``benchmarks/results/clicks_sigma_diagnosis.md``.)
 """
 
 from __future__ import annotations

@@ -97,6 +97,8 @@ def _compare(z, sigma, valid, zd, folder, truth, interior):
     e = r["err_um"]
     e_deep = validation.heightmap_errors(zd, np.ones(zd.shape), m, folder,
                                          border_px=BORDER)["err_um"]
+    if len(e_deep) != len(e):   # the wall split below indexes both by the map's mask
+        raise SystemExit("DeepFlow's heights are not finite on every pixel the map measured")
     sig = sigma[m].astype(float)
     rms = lambda a: float(np.sqrt(np.mean(a ** 2)))  # noqa: E731
     out = dict(measured=r["measured"], ours_nm=1e3 * rms(e),

@@ -2,7 +2,8 @@
 
 Run:  python benchmarks/reference_surface.py [--figure] [--only=synthetic|pollen]
                                             [--backward-sigma-p=P] [--total-error] [--fixed]
-      (a few minutes; --figure writes docs/reference_surface_pollen.png, the figure of docs/accuracy.md;
+      (a few minutes; --figure writes docs/reference_surface_pollen.png, the figure of
+      docs/accuracy.md;
       --backward-sigma-p passes ``backward_sigma_p`` to auto_match on pollen_pot1;
       --total-error sizes its grid by the total error: ``target_sigma_px=0,
       curvature_neighbours=1``; --fixed: fixed subsets, ``target_sigma_px=None``)

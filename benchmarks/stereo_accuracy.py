@@ -3,8 +3,8 @@ and the real quartz tilt series.
 
 Run:  python benchmarks/stereo_accuracy.py [--seeds 3] [--quick]
 
-Prints markdown tables (the stereo table of docs/accuracy.md comes from this script). Synthetic scenes
-are made by semlab.synth at 384×512 px, 0.03 µm/px, with 50 hand-click-like correspondences
+Prints markdown tables (the stereo table of docs/accuracy.md comes from this script).
+Synthetic scenes are made by semlab.synth at 384×512 px, 0.03 µm/px, with 50 hand-click-like correspondences
 (0.5 px click noise). Height errors are RMS after removing the best-fit plane of the
 difference (the reference plane is a convention; see semlab.validation).
 """

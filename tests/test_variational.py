@@ -137,7 +137,8 @@ def test_variational_parallax_on_a_scene_and_in_heightmap_from_stereo(scene_pair
     # the pixel-wise data term is biased there (RMS 0.31 px; flow 0.28, subset map 0.18),
     # elsewhere it is accurate
     assert np.sqrt(np.mean(e ** 2)) < 0.4 and np.median(np.abs(e)) < 0.2
-    # (its σ misses that bias: 47 % within 2σ here; see the dense-map section of docs/accuracy.md)
+    # (its σ misses that bias: 47 % within 2σ here; see the dense-map section of
+    # docs/accuracy.md)
     assert np.all(p.sigma_px[inner][p.valid[inner]] > 0)
     assert {"epipolar", "prior_scale_px", "noise_sigma"} <= set(p.calibration)
     # the run's heightmap step takes it with VariationalParams
