@@ -801,7 +801,6 @@ def _stage_variational(st):
     if not st.params.variational_fusion:
         return
     from .fusion import inverse_variance, sample_parallax
-    from .variational import variational_parallax
 
     sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
     for j in range(st.v):
@@ -817,8 +816,8 @@ def _stage_variational(st):
                              & np.all(np.isfinite(st.out[:, j]), axis=1))
         if len(idx) < 8:        # the map's epipolar relation needs 8 seeds
             continue
-        dm = variational_parallax(st.ims[st.ref], st.ims[j], seeds=st.out[idx][:, [st.ref, j]],
-                                  params=st.params.variational_params)
+        dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
+                              st.params.variational_params)
         xy1, s1 = sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
         # subset match by more than 3σ of the two (a tall object's hundreds of pixels of
@@ -831,6 +830,28 @@ def _stage_variational(st):
         st.out[idx, j] = fused
         used = wv > 0
         st.fused_sig[idx[used], j] = s_f[used]
+
+
+def _variational_map(view0, view1, seeds, params, tiling=None):
+    """Stage 9's variational parallax map of a view pair, seeded by ``seeds`` ((N, 2, 2)
+    matches). Views of more than ``tiling.map_min_pixels`` pixels (default
+    :data:`~semlab.tiled_stereo.DEFAULT_TILING`) are mapped in windows of
+    ``tiling.variational_tile_px`` with one calibration, one after another in this thread
+    (:func:`semlab.tiled_stereo.tiled_parallax`, ``scheduler="inline"``): the solve's memory
+    grows with its area (a 1216² tile of tiled matching: 1.1 GB at once, 0.35 GB in 512 px
+    windows; the points' parallax within 0.002 px RMS of the whole-view map, ~1/8 of its σ;
+    2026-12-05)."""
+    from .parallel import INLINE
+    from .tiled_stereo import DEFAULT_TILING, tiled_parallax
+    from .variational import VariationalParams, variational_parallax
+
+    t = tiling or DEFAULT_TILING
+    prm = params or VariationalParams()
+    shape = np.shape(view0)
+    if shape[0] * shape[1] <= t.map_min_pixels:
+        return variational_parallax(view0, view1, seeds=seeds, params=prm)
+    return tiled_parallax(view0, view1, seeds=seeds, params=prm, method=variational_parallax,
+                          tiling=t, scheduler=INLINE, progress=False)
 
 
 def _stage_result(st, progress):

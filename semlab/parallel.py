@@ -50,12 +50,14 @@ import numpy as np
 
 from .errors import SemlabError, TrackingError
 
-__all__ = ["SCHEDULER_ENV", "DEFAULT_TILE_PX", "Tile", "plan_tiles", "dask_client",
+__all__ = ["SCHEDULER_ENV", "INLINE", "DEFAULT_TILE_PX", "Tile", "plan_tiles", "dask_client",
            "limit_heap_growth", "set_default_scheduler", "scheduler_scope", "check_scheduler", "map_tiles", "tiled_icgn", "tiled_track_reverse",
            "tiled_dense_parallax", "map_roi_tiles"]
 
 #: Environment variable holding the default scheduler address (``tcp://HOST:PORT``).
 SCHEDULER_ENV = "SEMLAB_SCHEDULER"
+#: The ``scheduler`` that runs tiles in this thread, one after another (see :func:`dask_client`).
+INLINE = "inline"
 #: Default core tile size, pixels (a 1024² tile with its halo is ~30-300 MB of work arrays).
 DEFAULT_TILE_PX = 1024
 _SPLINE_MARGIN_PX = 32          # B-spline prefilter boundary effect: 0.268^32 ~ 5e-19
@@ -213,6 +215,10 @@ def dask_client(scheduler=None, processes=False, n_workers=None):
         ``"tcp://HOST:PORT"``: connect to that existing cluster (closed on exit, the cluster
         keeps running). A ``Client``: use it as it is (not closed). None: the address in
         ``SEMLAB_SCHEDULER`` if set, else a new local cluster, closed on exit.
+        :data:`INLINE` (``"inline"``): no cluster (yields None; :func:`map_tiles` then runs
+        the tiles one after another in this thread): for tiles cut inside a task that
+        already runs on a cluster (stage 9 of :func:`semlab.matching.auto_match` in a tile
+        of :func:`semlab.tiled_stereo.tiled_auto_match`).
     processes : bool
         Local cluster only: worker processes (one per core, one thread each) instead of one
         in-process worker with a thread per core (the default: no copies of the tiles).
@@ -221,13 +227,16 @@ def dask_client(scheduler=None, processes=False, n_workers=None):
 
     Yields
     ------
-    distributed.Client
+    distributed.Client, or None for ``INLINE``
 
     Raises
     ------
     SemlabError
         When the scheduler address is malformed or nothing answers there.
     """
+    if isinstance(scheduler, str) and scheduler == INLINE:
+        yield None
+        return
     from distributed import Client, LocalCluster
 
     scheduler = _requested_scheduler(scheduler)
@@ -265,13 +274,24 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
     One task per worker thread plus one are in flight: ``jobs`` is consumed lazily, so the
     driver only ever holds the arguments (tile crops) of the running tasks and the next.
 
+    With ``client`` None (:data:`INLINE`) the tasks run here, one after another, in
+    ``jobs`` order.
+
     Yields
     ------
     (index, result) in completion order, with a tqdm bar over the ``n_jobs`` tasks. An
     exception in a task is raised here (the other tasks are cancelled).
     """
-    from distributed import as_completed
     from tqdm.auto import tqdm
+
+    if client is None:
+        with tqdm(total=n_jobs, desc=desc, unit="tile", disable=not progress) as bar:
+            for i, args in jobs:
+                result = fn(*args)
+                bar.update()
+                yield i, result
+        return
+    from distributed import as_completed
 
     limit = sum(client.nthreads().values()) + 1     # every thread busy, one tile queued
     jobs = iter(jobs)

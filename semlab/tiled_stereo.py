@@ -63,6 +63,12 @@ class TilingParams:
     dense_tile_px : int
         Core tile of the dense map, pixels (multiple of 16; a subset at every pixel: a
         256² tile with its halo holds ~0.4 GB of work arrays, benchmarks/memory_large.py).
+    variational_tile_px : int
+        Core tile of a variational map (:mod:`semlab.variational`; multiple of 16): its
+        solve covers the tile and a ``margin_px`` band and holds ~0.75 kB per pixel at its
+        peak (the multigrid set-up): ~0.3 GB for a 512² tile (a 1216² window: 1.1 GB;
+        2026-12-05). Also the windows of stage 9 of :func:`~semlab.matching.auto_match`
+        on views of more than ``map_min_pixels`` pixels.
     max_parallax_px : float
         Largest parallax left once a tile's view-1 crop is shifted by the median of its
         seeds' parallax (or the global affine), pixels: the crops reach this far.
@@ -78,17 +84,18 @@ class TilingParams:
     tile_px: int = 1024
     halo_px: int = 96
     dense_tile_px: int = 256
+    variational_tile_px: int = 512
     max_parallax_px: float = 48.0
     prior_max_side_px: int = 1024
     map_min_pixels: int = 512 * 512
 
     def __post_init__(self):
-        for name in ("min_pixels", "tile_px", "halo_px", "dense_tile_px", "prior_max_side_px",
-                     "map_min_pixels"):
+        for name in ("min_pixels", "tile_px", "halo_px", "dense_tile_px",
+                     "variational_tile_px", "prior_max_side_px", "map_min_pixels"):
             v = getattr(self, name)
             if isinstance(v, bool) or int(v) != v or v < 0:
                 raise SemlabError(f"TilingParams.{name} must be a whole number >= 0, got {v!r}")
-        for name in ("tile_px", "dense_tile_px"):
+        for name in ("tile_px", "dense_tile_px", "variational_tile_px"):
             plan_tiles((1, 1), getattr(self, name))       # its own check: multiple of 16
         if not self.max_parallax_px >= 0:
             raise SemlabError(f"TilingParams.max_parallax_px must be >= 0 pixels, got "
@@ -360,7 +367,7 @@ def run_auto_match(images, *, tiling=None, progress=True, **kw):
 
 # --------------------------------------------------------------------------- dense maps
 def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(),
-                  scheduler=None, progress=True, desc="dense tiles", offsets=None):
+                  scheduler=None, progress=True, desc="dense tiles", offsets=None, done=None):
     """Apply a dense per-window method to core tiles of a region, on the cluster.
 
     Parameters
@@ -386,6 +393,10 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
     offsets : callable, optional
         ``offsets(box) -> list of (dx, dy)``: integer shift of each image's crop from the
         first's (e.g. the median parallax of the tile's seeds); default no shift.
+    done : dict, optional
+        ``{(x0, y0, x1, y1): (arrays, extra)}``: core tiles already computed (by an earlier
+        call on the same images with the same ``reach_px`` and ``offsets``, so the same
+        crops): pasted, not run again.
 
     Returns
     -------
@@ -420,8 +431,12 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
             shift[k] = (x0, y0)
         return pts[keep] - shift[None]
 
+    done = dict(done or {})
+
     def jobs():
         for i, (r, boxes) in enumerate(plans):
+            if r in done:
+                continue
             y0, _, x0, _ = boxes[0]
             crops = [np.asarray(im[b[0]:b[1], b[2]:b[3]]) for im, b in zip(images, boxes)]
             yield i, (fn, crops, (r[0] - x0, r[1] - y0, r[2] - x0, r[3] - y0),
@@ -429,19 +444,27 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
 
     shape = (roi[3] - roi[1], roi[2] - roi[0])
     arrays, extras = {}, [None] * len(plans)
-    with dask_client(scheduler) as client:
-        for i, (res, extra) in map_tiles(client, _roi_task, jobs(), len(plans), desc,
-                                         progress):
-            (rx0, ry0, rx1, ry1), _ = plans[i]
-            sl = (slice(ry0 - roi[1], ry1 - roi[1]), slice(rx0 - roi[0], rx1 - roi[0]))
-            for name, a in res.items():
-                if name not in arrays:
-                    a = np.asarray(a)
-                    fill = False if a.dtype == bool else (
-                        0 if np.issubdtype(a.dtype, np.integer) else np.nan)
-                    arrays[name] = np.full(shape, fill, a.dtype)
-                arrays[name][sl] = a
-            extras[i] = extra
+
+    def results():
+        for i, (r, _) in enumerate(plans):
+            if r in done:
+                yield i, done[r]
+        left = sum(r not in done for r, _ in plans)
+        if left:
+            with dask_client(scheduler) as client:
+                yield from map_tiles(client, _roi_task, jobs(), left, desc, progress)
+
+    for i, (res, extra) in results():
+        (rx0, ry0, rx1, ry1), _ = plans[i]
+        sl = (slice(ry0 - roi[1], ry1 - roi[1]), slice(rx0 - roi[0], rx1 - roi[0]))
+        for name, a in res.items():
+            if name not in arrays:
+                a = np.asarray(a)
+                fill = False if a.dtype == bool else (
+                    0 if np.issubdtype(a.dtype, np.integer) else np.nan)
+                arrays[name] = np.full(shape, fill, a.dtype)
+            arrays[name][sl] = a
+        extras[i] = extra
     origins = [[(b[2], b[0]) for b in boxes] for _, boxes in plans]
     return arrays, origins, extras, [r for r, _ in plans]
 
@@ -547,6 +570,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     """
     from .heightmap import DenseParams, _as_view, _check_roi
     from .noise import with_seed_noise
+    from .variational import VariationalParams
 
     fn = _dense_method(method)
     p = params or DenseParams()
@@ -573,25 +597,30 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         if fin.any():
             default = np.median(seeds[fin, 1] - seeds[fin, 0], axis=0)
     offsets = _seed_offsets(seeds, default)
+    tile_px = int(t.variational_tile_px if isinstance(p, VariationalParams)
+                  else t.dense_tile_px)
+    done = {}
     if not {"sigma_factor", "zncc_tau", "noise_sigma"} <= set(cal):
-        # the σ factor and fusion τ of the central tile, shared by every tile
-        c = int(t.dense_tile_px)
+        # the σ factor and fusion τ (a variational map: epipolar relation and prior scale)
+        # of the tile holding the centre of roi, shared by every tile; that tile's map is
+        # kept (with them it is what the tiling would compute again)
         cx, cy = (roi[0] + roi[2]) // 2, (roi[1] + roi[3]) // 2
-        croi = (max(roi[0], cx - c // 2), max(roi[1], cy - c // 2),
-                min(roi[2], cx - c // 2 + c), min(roi[3], cy - c // 2 + c))
+        croi = next((roi[0] + k.x0, roi[1] + k.y0, roi[0] + k.x1, roi[1] + k.y1)
+                    for k in plan_tiles((roi[3] - roi[1], roi[2] - roi[0]), tile_px)
+                    if k.x0 <= cx - roi[0] < k.x1 and k.y0 <= cy - roi[1] < k.y1)
         carrays, corigins, extras, cplans = map_roi_tiles(
             _parallax_tile, [v0, v1], croi, reach, tile_px=_round16(max(croi[2] - croi[0],
                                                                          croi[3] - croi[1])),
             points=seeds, args=(fn, p, cal), scheduler=scheduler, progress=progress,
             desc="dense calibration", offsets=offsets)
         cal = {**extras[0][1], **cal}
-        if croi == roi and (roi[2] - roi[0]) <= t.dense_tile_px \
-                and (roi[3] - roi[1]) <= t.dense_tile_px:
+        if croi == roi:
             # the region is one tile: the calibration window is the map
             return _assemble(carrays, corigins, cplans, roi, p, [extras[0][0]], cal)
+        done[croi] = (carrays, extras[0])
     arrays, origins, extras, plans = map_roi_tiles(
-        _parallax_tile, [v0, v1], roi, reach, tile_px=t.dense_tile_px, points=seeds,
-        args=(fn, p, cal), scheduler=scheduler, progress=progress, offsets=offsets)
+        _parallax_tile, [v0, v1], roi, reach, tile_px=tile_px, points=seeds,
+        args=(fn, p, cal), scheduler=scheduler, progress=progress, offsets=offsets, done=done)
     return _assemble(arrays, origins, plans, roi, p, [e[0] for e in extras], cal)
 
 

@@ -144,12 +144,20 @@ def test_tiled_parallax_calibrates_once_and_takes_a_method(pair):
     t = TilingParams(dense_tile_px=64, max_parallax_px=8)
     out = tiled_parallax(ref, cur, roi=(96, 96, 224, 160), params=p, method=method, tiling=t,
                          progress=False)
-    # one central calibration window, then 2 × 1 tiles that all get its σ factor and τ
-    assert len(calls) == 3 and "sigma_factor" not in calls[0]
-    assert all(c["sigma_factor"] == calls[1]["sigma_factor"] for c in calls[1:])
+    # the tile holding the centre calibrates (and is kept), then the other of the 2 × 1
+    # tiles gets its σ factor and τ
+    assert len(calls) == 2 and "sigma_factor" not in calls[0]
+    assert calls[1]["sigma_factor"] == out.calibration["sigma_factor"]
     assert out.valid.mean() > 0.9
     par = (out.x1_px - out.grid()[0])[out.valid]
     assert -2.7 < np.median(par) < -0.3        # view 1 sees the texture at x - parallax
+    # the kept calibration tile is what the tiling computes given that calibration
+    calls.clear()
+    again = tiled_parallax(ref, cur, roi=(96, 96, 224, 160), params=p, method=method,
+                           tiling=t, progress=False, calibration=out.calibration)
+    assert len(calls) == 2 and all("sigma_factor" in c for c in calls)
+    both = out.valid & again.valid
+    assert both.mean() > 0.9 and np.max(np.abs(again.x1_px - out.x1_px)[both]) < 1e-6
     calls.clear()                        # a one-tile region: the calibration call is the map
     one = tiled_parallax(ref, cur, roi=(96, 96, 160, 160), params=p, method=method, tiling=t,
                          progress=False)
