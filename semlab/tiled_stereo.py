@@ -367,7 +367,8 @@ def run_auto_match(images, *, tiling=None, progress=True, **kw):
 
 # --------------------------------------------------------------------------- dense maps
 def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(),
-                  scheduler=None, progress=True, desc="dense tiles", offsets=None, done=None):
+                  scheduler=None, progress=True, desc="dense tiles", offsets=None, done=None,
+                  pass_origins=False):
     """Apply a dense per-window method to core tiles of a region, on the cluster.
 
     Parameters
@@ -397,6 +398,9 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
         ``{(x0, y0, x1, y1): (arrays, extra)}``: core tiles already computed (by an earlier
         call on the same images with the same ``reach_px`` and ``offsets``, so the same
         crops): pasted, not run again.
+    pass_origins : bool
+        Call ``fn(crops, roi_local, points_local, *args, origins=origins)``, ``origins`` the
+        crops' ``(x0, y0)`` in their images (for results tied to image coordinates).
 
     Returns
     -------
@@ -439,8 +443,9 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
                 continue
             y0, _, x0, _ = boxes[0]
             crops = [np.asarray(im[b[0]:b[1], b[2]:b[3]]) for im, b in zip(images, boxes)]
+            kw = {"origins": [(b[2], b[0]) for b in boxes]} if pass_origins else {}
             yield i, (fn, crops, (r[0] - x0, r[1] - y0, r[2] - x0, r[3] - y0),
-                      local_points(boxes), args)
+                      local_points(boxes), args, kw)
 
     shape = (roi[3] - roi[1], roi[2] - roi[0])
     arrays, extras = {}, [None] * len(plans)
@@ -469,17 +474,33 @@ def map_roi_tiles(fn, images, roi, reach_px, *, tile_px=512, points=None, args=(
     return arrays, origins, extras, [r for r, _ in plans]
 
 
-def _roi_task(fn, crops, roi, points, args):
-    return fn(crops, roi, points, *args)
+def _roi_task(fn, crops, roi, points, args, kw):
+    return fn(crops, roi, points, *args, **kw)
 
 
-def _parallax_tile(crops, roi, points, method, params, calibration):
-    """One tile of :func:`tiled_parallax` (positions in crop pixels)."""
-    p = method(crops[0], crops[1], seeds=points, roi=roi, params=params,
-               calibration=calibration)
+def _epipolar_moved(e, origins, sign):
+    """The epipolar relation ``y1 − y0 = e0 + e1 x0 + e2 y0 + e3 (x1 − x0)`` of image
+    pixels in the pixels of crops at ``origins`` ((x, y) of view 0's and view 1's crop)
+    (``sign`` +1), or back (−1): only ``e0`` changes."""
+    (ax, ay), (bx, by) = origins[0], origins[1]
+    e = np.asarray(e, float).copy()
+    e[0] += sign * (e[1] * ax + e[2] * ay + e[3] * (bx - ax) - (by - ay))
+    return e.tolist()
+
+
+def _parallax_tile(crops, roi, points, method, params, calibration, origins):
+    """One tile of :func:`tiled_parallax` (positions in crop pixels; the calibration's
+    epipolar relation in image pixels, moved to the crops' and back)."""
+    cal = dict(calibration)
+    if cal.get("epipolar") is not None:
+        cal["epipolar"] = _epipolar_moved(cal["epipolar"], origins, +1)
+    p = method(crops[0], crops[1], seeds=points, roi=roi, params=params, calibration=cal)
+    out = dict(p.calibration)
+    if out.get("epipolar") is not None:
+        out["epipolar"] = _epipolar_moved(out["epipolar"], origins, -1)
     return ({"x1_px": p.x1_px, "y1_px": p.y1_px, "sigma_px": p.sigma_px,
              "sigma_y_px": p.sigma_y_px, "valid": np.asarray(p.valid, bool), "zncc": p.zncc},
-            (p.sigma_scale, dict(p.calibration)))
+            (p.sigma_scale, out))
 
 
 def _dense_method(method):
@@ -541,11 +562,16 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     parallax of the seeds in the tile (so the parallax a crop must hold is the *variation*
     around it). The calibration is measured once (image noise as the matcher measures it,
     :func:`semlab.noise.calibrated_noise_sigma` at the seeds; view 1's B-spline mean on the
-    whole view; σ factor, fusion τ, and the noise without seeds, by ``method`` on the
-    central tile of ``roi``)
-    and given to every tile, so the map equals one untiled ``method(view0, view1, seeds,
-    roi, params, calibration=...)`` call within the IC-GN tolerance (the tiles' initial
-    guesses are their crops' flow: tested).
+    whole view; a variational map's epipolar relation fitted on all the seeds; σ factor,
+    fusion τ, a variational map's prior scale, and what the seeds do not give, by ``method``
+    on the tile holding the centre of ``roi``, whose map is kept) and given to every tile,
+    so the map equals one untiled ``method(view0, view1, seeds, roi, params,
+    calibration=...)`` call within the IC-GN tolerance (the tiles' initial guesses are
+    their crops' flow: tested). The epipolar relation is recorded in image pixels; each
+    tile gets it in its crops' pixels (views rotated in the image plane: tested).
+
+    The tile size is ``tiling.variational_tile_px`` for ``VariationalParams``, else
+    ``tiling.dense_tile_px``.
 
     Parameters
     ----------
@@ -597,6 +623,15 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         if fin.any():
             default = np.median(seeds[fin, 1] - seeds[fin, 0], axis=0)
     offsets = _seed_offsets(seeds, default)
+    if isinstance(p, VariationalParams) and cal.get("epipolar") is None and seeds is not None:
+        # the epipolar relation of the whole view, fitted once on the seeds (image pixels;
+        # each tile gets it in its crops' pixels)
+        from .variational import fit_epipolar
+
+        fs = seeds[np.all(np.isfinite(seeds.reshape(len(seeds), -1)), 1)]
+        if len(fs) >= 8:
+            cal["epipolar"] = list(fit_epipolar(fs[:, 0, 0], fs[:, 0, 1], fs[:, 1, 0],
+                                                fs[:, 1, 1]))
     tile_px = int(t.variational_tile_px if isinstance(p, VariationalParams)
                   else t.dense_tile_px)
     done = {}
@@ -612,7 +647,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
             _parallax_tile, [v0, v1], croi, reach, tile_px=_round16(max(croi[2] - croi[0],
                                                                          croi[3] - croi[1])),
             points=seeds, args=(fn, p, cal), scheduler=scheduler, progress=progress,
-            desc="dense calibration", offsets=offsets)
+            desc="dense calibration", offsets=offsets, pass_origins=True)
         cal = {**extras[0][1], **cal}
         if croi == roi:
             # the region is one tile: the calibration window is the map
@@ -620,7 +655,8 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         done[croi] = (carrays, extras[0])
     arrays, origins, extras, plans = map_roi_tiles(
         _parallax_tile, [v0, v1], roi, reach, tile_px=tile_px, points=seeds,
-        args=(fn, p, cal), scheduler=scheduler, progress=progress, offsets=offsets, done=done)
+        args=(fn, p, cal), scheduler=scheduler, progress=progress, offsets=offsets, done=done,
+        pass_origins=True)
     return _assemble(arrays, origins, plans, roi, p, [e[0] for e in extras], cal)
 
 
