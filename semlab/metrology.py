@@ -179,8 +179,8 @@ def surface_parameters(z_um, pixel_size_um, regions=None, min_pixels=16):
             row.update({k: np.nan for k in SURFACE_PARAMETERS})
             rows.append(row)
             continue
-        ii, jj = np.nonzero(m)
-        sl = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
+        ii, jj = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        sl = (slice(ii[0], ii[-1] + 1), slice(jj[0], jj[-1] + 1))
         crop = z[sl].copy()
         crop[~m[sl]] = np.nan
         filled = _fill_nearest(crop)
@@ -290,9 +290,12 @@ def _dominant_angle(z):
     """Direction (radians, from x, y down) along which the height varies least: the
     eigenvector of the smallest eigenvalue of the gradient structure tensor."""
     gy, gx = np.gradient(z)
-    ok = np.isfinite(gx) & np.isfinite(gy)
-    J = np.array([[np.sum(gx[ok] ** 2), np.sum(gx[ok] * gy[ok])],
-                  [np.sum(gx[ok] * gy[ok]), np.sum(gy[ok] ** 2)]])
+    bad = ~(np.isfinite(gx) & np.isfinite(gy))
+    gx[bad] = 0.0               # (zeroed in place: no masked copies of a 12 Mpx map)
+    gy[bad] = 0.0
+    gx, gy = gx.ravel(), gy.ravel()
+    gxy = float(np.dot(gx, gy))
+    J = np.array([[np.dot(gx, gx), gxy], [gxy, np.dot(gy, gy)]])
     w, v = np.linalg.eigh(J)
     d = v[:, 0]
     return float(np.arctan2(d[1], d[0]))
@@ -346,14 +349,20 @@ def detect_bands(z_um, pixel_size_um, sigma_um=None, max_bands=12, min_prominenc
     a = _dominant_angle(zs)
     d = np.array([np.cos(a), np.sin(a)])
     n = np.array([-d[1], d[0]])
+    del zf, zs
     hgt, wid = z.shape
-    yy, xx = np.mgrid[0:hgt, 0:wid]
-    off = xx * n[0] + yy * n[1]
+    yy, xx = np.ogrid[0:hgt, 0:wid]
+    off = xx * n[0] + yy * n[1]                 # distance across the bands, pixels
     ok = np.isfinite(z)
     lo = np.floor(off.min())
-    b = np.floor(off - lo).astype(int)
-    cnt = np.bincount(b[ok], minlength=b.max() + 1)
-    sm = np.bincount(b[ok], weights=z[ok], minlength=b.max() + 1)
+    off -= lo
+    b = off.astype(np.intp)                     # off >= 0: truncation is the floor
+    del off
+    nb = int(b.max()) + 1
+    b = b[ok]
+    cnt = np.bincount(b, minlength=nb)
+    sm = np.bincount(b, weights=z[ok], minlength=nb)
+    del b
     with np.errstate(invalid="ignore", divide="ignore"):
         prof = sm / cnt
     good = cnt >= max(5, 0.05 * cnt.max())
@@ -441,7 +450,14 @@ def band_profile(z_um, sigma_um, pixel_size_um, band, bin_px=1.0, corr_px=15.0,
     n = np.array([-d[1], d[0]])
     hw = float(band.half_width_px)
     hgt, wid = z.shape
-    yy, xx = np.mgrid[0:hgt, 0:wid]
+    # the pixels within hw of the trace lie in its end points' box widened by hw (open
+    # grids and that box: no full-size coordinate arrays of a 12 Mpx map)
+    x0 = int(max(0, np.floor(min(p0[0], p1[0]) - hw)))
+    x1 = int(min(wid, np.ceil(max(p0[0], p1[0]) + hw) + 1))
+    y0 = int(max(0, np.floor(min(p0[1], p1[1]) - hw)))
+    y1 = int(min(hgt, np.ceil(max(p0[1], p1[1]) + hw) + 1))
+    z, sg = z[y0:y1, x0:x1], sg[y0:y1, x0:x1]
+    yy, xx = np.ogrid[y0:y1, x0:x1]
     rx, ry = xx - p0[0], yy - p0[1]
     along = rx * d[0] + ry * d[1]
     across = rx * n[0] + ry * n[1]
