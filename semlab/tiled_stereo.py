@@ -561,11 +561,11 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     pad + ``tiling.max_parallax_px`` beyond the tile; view 1's crop is shifted by the median
     parallax of the seeds in the tile (so the parallax a crop must hold is the *variation*
     around it). The calibration is measured once (image noise as the matcher measures it,
-    :func:`semlab.noise.calibrated_noise_sigma` at the seeds; view 1's B-spline mean on the
-    whole view; a variational map's epipolar relation fitted on all the seeds; σ factor,
-    fusion τ, a variational map's prior scale, and what the seeds do not give, by ``method``
-    on the tile holding the centre of ``roi``, whose map is kept) and given to every tile,
-    so the map equals one untiled ``method(view0, view1, seeds, roi, params,
+    :func:`semlab.noise.calibrated_noise_sigma` at the seeds; a subset map's view-1 B-spline
+    mean on the whole view; a variational map's epipolar relation fitted on all the seeds;
+    σ factor, fusion τ, a variational map's prior scale, and what the seeds do not give, by
+    ``method`` on the tile holding the centre of ``roi``, whose map is kept) and given to
+    every tile, so the map equals one untiled ``method(view0, view1, seeds, roi, params,
     calibration=...)`` call within the IC-GN tolerance (the tiles' initial guesses are
     their crops' flow: tested). The epipolar relation is recorded in image pixels; each
     tile gets it in its crops' pixels (views rotated in the image plane: tested).
@@ -610,7 +610,8 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     # the matcher's calibrated noise at the seeds; without seeds the calibration tile
     # measures it the same way on its dense subsets (icgn_refine's default)
     cal = with_seed_noise(calibration, v0, v1, seeds)
-    if "coef_offset" not in cal:
+    if "coef_offset" not in cal and not isinstance(p, VariationalParams):
+        # (the subset map's B-spline level; a variational map normalises its views locally)
         from scipy import ndimage
 
         cal["coef_offset"] = float(ndimage.spline_filter(np.asarray(v1, np.float64), order=3,
