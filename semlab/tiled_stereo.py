@@ -600,6 +600,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
 
     fn = _dense_method(method)
     p = params or DenseParams()
+    variational = isinstance(p, VariationalParams)
     t = tiling or DEFAULT_TILING
     v0, v1 = np.asarray(view0), np.asarray(view1)
     if v0.shape != v1.shape or v0.ndim != 2:
@@ -610,7 +611,7 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     # the matcher's calibrated noise at the seeds; without seeds the calibration tile
     # measures it the same way on its dense subsets (icgn_refine's default)
     cal = with_seed_noise(calibration, v0, v1, seeds)
-    if "coef_offset" not in cal and not isinstance(p, VariationalParams):
+    if "coef_offset" not in cal and not variational:
         # (the subset map's B-spline level; a variational map normalises its views locally)
         from scipy import ndimage
 
@@ -624,17 +625,13 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         if fin.any():
             default = np.median(seeds[fin, 1] - seeds[fin, 0], axis=0)
     offsets = _seed_offsets(seeds, default)
-    if isinstance(p, VariationalParams) and cal.get("epipolar") is None and seeds is not None:
+    if variational:
         # the epipolar relation of the whole view, fitted once on the seeds (image pixels;
         # each tile gets it in its crops' pixels)
-        from .variational import fit_epipolar
+        from .variational import _with_seed_epipolar
 
-        fs = seeds[np.all(np.isfinite(seeds.reshape(len(seeds), -1)), 1)]
-        if len(fs) >= 8:
-            cal["epipolar"] = list(fit_epipolar(fs[:, 0, 0], fs[:, 0, 1], fs[:, 1, 0],
-                                                fs[:, 1, 1]))
-    tile_px = int(t.variational_tile_px if isinstance(p, VariationalParams)
-                  else t.dense_tile_px)
+        cal = _with_seed_epipolar(cal, seeds)
+    tile_px = int(t.variational_tile_px if variational else t.dense_tile_px)
     done = {}
     if not {"sigma_factor", "zncc_tau", "noise_sigma"} <= set(cal):
         # the σ factor and fusion τ (a variational map: epipolar relation and prior scale)

@@ -204,6 +204,18 @@ def fit_epipolar(x0, y0, x1, y1):
     return e
 
 
+def _with_seed_epipolar(calibration, seeds):
+    """A copy of ``calibration`` with ``"epipolar"`` fitted on ``seeds`` ((N, 2, 2) matches,
+    :func:`fit_epipolar`) when it has none and there are 8 seeds: the sparse matches fix
+    the relation far better than the flow's y."""
+    cal = dict(calibration or {})
+    if cal.get("epipolar") is None and seeds is not None and len(seeds) >= 8:
+        sd = np.asarray(seeds, float)
+        cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0],
+                                       sd[:, 1, 1]).tolist()
+    return cal
+
+
 def _grad_x(a):
     g = np.zeros_like(a)
     g[:, 1:-1] = 0.5 * (a[:, 2:] - a[:, :-2])
@@ -674,10 +686,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
     yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
     p0 = np.stack([g[..., 0] - xx, g[..., 1] - yy], -1)
     cal = dict(calibration or {})
-    if cal.get("epipolar") is None and seeds is not None and len(seeds) >= 8:
-        # the sparse matches fix the epipolar relation far better than the flow's y
-        sd = np.asarray(seeds, float)
-        cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0], sd[:, 1, 1])
+    cal = _with_seed_epipolar(cal, seeds)
     cal = with_seed_noise(cal, view0, view1, seeds)   # the matcher's noise at the seeds
     if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
         prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))
