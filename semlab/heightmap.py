@@ -113,6 +113,41 @@ class DenseParams:
         r = self.half_window - 1 if self.fusion_radius_px is None else self.fusion_radius_px
         return int(2 * self.half_window + r + 6 + self.smooth_radius_px)
 
+    # what the tiling (semlab.tiled_stereo.tiled_parallax) asks of a dense method's params
+    def dense_method(self):
+        """The dense method these parameters are for: :func:`dense_parallax`."""
+        return dense_parallax
+
+    def tile_px(self, tiling):
+        """Core tile size of a tiled map, pixels: ``tiling.dense_tile_px`` (one subset per
+        pixel: small tiles keep the work arrays small)."""
+        return int(tiling.dense_tile_px)
+
+    def shared_calibration(self, view0, view1, seeds, calibration):
+        """``calibration`` plus what every tile of one tiled map must share: view 1's mean
+        B-spline coefficient (``coef_offset``, :func:`semlab.subset.icgn_refine`), which a
+        tile's crop would give differently.
+
+        Parameters
+        ----------
+        view0, view1 : (H, W) arrays
+        seeds : (N, 2, 2) array or None
+            Unused (the variational map fits its epipolar relation on them).
+        calibration : dict
+
+        Returns
+        -------
+        dict
+            A copy.
+        """
+        from scipy import ndimage
+
+        cal = dict(calibration or {})
+        if "coef_offset" not in cal:
+            cal["coef_offset"] = float(ndimage.spline_filter(
+                np.asarray(view1, np.float64), order=3, mode="mirror").mean())
+        return cal
+
 
 @dataclass
 class DenseParallax:
@@ -765,12 +800,12 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
         notes.append(f"only {len(stereo.pts)} points: heights from the tilts above the "
                      "camera model's z = 0 plane, not the points' reference plane")
     from .tiled_stereo import DEFAULT_TILING, tiled_parallax
-    from .variational import VariationalParams, variational_parallax
 
     t = tiling or DEFAULT_TILING
-    method = variational_parallax if isinstance(params, VariationalParams) else None
-    if method is not None:
-        notes.append("variational parallax (semlab.variational.refine_parallax)")
+    params = params or DenseParams()
+    method = params.dense_method()
+    if method is not dense_parallax:
+        notes.append(f"{method.__module__}.{method.__name__}")
     noise, how = stereo_noise_sigma(views[0], views[1], stereo)
     cal = {"noise_sigma": noise}
     notes.append(f"image noise σ {noise[0]:.4g}, {noise[1]:.4g} (grey levels) {how}")
@@ -779,11 +814,11 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
         par = tiled_parallax(views[0], views[1], seeds=seeds, roi=roi, params=params,
                              method=method, calibration=cal, tiling=t, scheduler=scheduler,
                              progress=progress)
-        notes.append(f"mapped in {t.dense_tile_px} px tiles with one calibration "
+        notes.append(f"mapped in {params.tile_px(t)} px tiles with one calibration "
                      "(semlab.tiled_stereo.tiled_parallax)")
     else:
-        par = (method or dense_parallax)(views[0], views[1], seeds=seeds, roi=roi,
-                                         params=params, calibration=cal, progress=progress)
+        par = method(views[0], views[1], seeds=seeds, roi=roi, params=params,
+                     calibration=cal, progress=progress)
     hm = _heights(par, model, exp.pixel_size_um)
     hm.notes.extend(notes)
     return hm

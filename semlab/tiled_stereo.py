@@ -570,8 +570,9 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     their crops' flow: tested). The epipolar relation is recorded in image pixels; each
     tile gets it in its crops' pixels (views rotated in the image plane: tested).
 
-    The tile size is ``tiling.variational_tile_px`` for ``VariationalParams``, else
-    ``tiling.dense_tile_px``.
+    The tile size is ``params.tile_px(tiling)`` (``tiling.dense_tile_px`` for the subset
+    map, ``tiling.variational_tile_px`` for the variational map) and what the tiles share
+    beyond the noise is ``params.shared_calibration(...)``.
 
     Parameters
     ----------
@@ -583,7 +584,8 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     params : semlab.heightmap.DenseParams, optional
     method : callable, optional
         A dense method with :func:`~semlab.heightmap.dense_parallax`'s signature and result
-        (default ``dense_parallax``).
+        (default ``params.dense_method()``: ``dense_parallax`` for ``DenseParams``,
+        :func:`~semlab.variational.variational_parallax` for ``VariationalParams``).
     calibration : dict, optional
         Keys of ``dense_parallax``'s ``calibration``; missing ones are measured as above.
     tiling : TilingParams, optional
@@ -596,11 +598,9 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     """
     from .heightmap import DenseParams, _as_view, _check_roi
     from .noise import with_seed_noise
-    from .variational import VariationalParams
 
-    fn = _dense_method(method)
     p = params or DenseParams()
-    variational = isinstance(p, VariationalParams)
+    fn = _dense_method(method or p.dense_method())
     t = tiling or DEFAULT_TILING
     v0, v1 = np.asarray(view0), np.asarray(view1)
     if v0.shape != v1.shape or v0.ndim != 2:
@@ -611,12 +611,6 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
     # the matcher's calibrated noise at the seeds; without seeds the calibration tile
     # measures it the same way on its dense subsets (icgn_refine's default)
     cal = with_seed_noise(calibration, v0, v1, seeds)
-    if "coef_offset" not in cal and not variational:
-        # (the subset map's B-spline level; a variational map normalises its views locally)
-        from scipy import ndimage
-
-        cal["coef_offset"] = float(ndimage.spline_filter(np.asarray(v1, np.float64), order=3,
-                                                         mode="mirror").mean())
     reach = p.margin_px() + float(t.max_parallax_px) + 2 * int(p.half_window) + 10
     seeds = None if seeds is None else np.asarray(seeds, float)[:, :2]
     default = (0.0, 0.0)
@@ -625,13 +619,11 @@ def tiled_parallax(view0, view1, seeds=None, roi=None, params=None, *, method=No
         if fin.any():
             default = np.median(seeds[fin, 1] - seeds[fin, 0], axis=0)
     offsets = _seed_offsets(seeds, default)
-    if variational:
-        # the epipolar relation of the whole view, fitted once on the seeds (image pixels;
-        # each tile gets it in its crops' pixels)
-        from .variational import _with_seed_epipolar
-
-        cal = _with_seed_epipolar(cal, seeds)
-    tile_px = int(t.variational_tile_px if variational else t.dense_tile_px)
+    # what the method's tiles must share beyond the noise (the subset map: view 1's B-spline
+    # level; the variational map: the epipolar relation fitted once on all the seeds, in
+    # image pixels, each tile getting it in its crops' pixels)
+    cal = p.shared_calibration(v0, v1, seeds, cal)
+    tile_px = p.tile_px(t)
     done = {}
     if not {"sigma_factor", "zncc_tau", "noise_sigma"} <= set(cal):
         # the σ factor and fusion τ (a variational map: epipolar relation and prior scale)

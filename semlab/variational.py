@@ -129,6 +129,36 @@ class VariationalParams:
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
         return int(self.margin)
 
+    # what the tiling (semlab.tiled_stereo.tiled_parallax) asks of a dense method's params
+    def dense_method(self):
+        """The dense method these parameters are for: :func:`variational_parallax`."""
+        return variational_parallax
+
+    def tile_px(self, tiling):
+        """Core tile size of a tiled map, pixels: ``tiling.variational_tile_px`` (the
+        solve's arrays are a few per pixel, and a tile's border is a seam of the prior)."""
+        return int(tiling.variational_tile_px)
+
+    def shared_calibration(self, view0, view1, seeds, calibration):
+        """``calibration`` plus what every tile of one tiled map must share: the epipolar
+        relation fitted once on all the ``seeds`` (image pixels, :func:`_with_seed_epipolar`;
+        the tiling gives each tile it in its crops' pixels). A variational map normalises
+        its views locally, so no B-spline level.
+
+        Parameters
+        ----------
+        view0, view1 : (H, W) arrays
+            Unused.
+        seeds : (N, 2, 2) array or None
+        calibration : dict
+
+        Returns
+        -------
+        dict
+            A copy.
+        """
+        return _with_seed_epipolar(calibration, seeds)
+
 
 # ------------------------------------------------------------------------------ helpers
 def normalise_local(img, sigma_px, noise_sigma=None):

@@ -182,7 +182,8 @@ def test_the_run_steps_take_the_tiled_path_above_the_threshold(small_experiment_
     st = pipeline.run_stereo(exp, n_boot=0, progress=False)
     whole = heightmap_from_stereo(exp, st)
     tiled = heightmap_from_stereo(exp, st, tiling=small, roi=(0, 0, 128, 96))
-    assert any("tiles" in n for n in tiled.notes) and not any("tiles" in n for n in whole.notes)
+    assert any("64 px tiles" in n for n in tiled.notes)
+    assert not any("tiles" in n for n in whole.notes)
     assert tiled.model == whole.model and tiled.z_um.shape == whole.z_um.shape
     both = tiled.valid & whole.valid
     assert both.mean() > 0.8
@@ -196,3 +197,29 @@ def test_the_run_steps_take_the_tiled_path_above_the_threshold(small_experiment_
     by_map = heightmap_from_stereo(exp, st, tiling=big_map)
     assert any("tiles" in n for n in by_map.notes)
     assert np.median(np.abs(by_map.z_um[both] - whole.z_um[both])) < 0.002
+
+
+def test_each_dense_params_names_its_method_tile_size_and_shared_calibration():
+    """tiled_parallax asks the params, not their type: the subset map tiles at
+    dense_tile_px and shares view 1's B-spline level; the variational map tiles at
+    variational_tile_px and shares the epipolar relation of all the seeds."""
+    from semlab.variational import VariationalParams, variational_parallax
+
+    t = TilingParams(dense_tile_px=64, variational_tile_px=192)
+    dp, vp = DenseParams(), VariationalParams()
+    assert dp.dense_method() is dense_parallax and vp.dense_method() is variational_parallax
+    assert dp.tile_px(t) == 64 and vp.tile_px(t) == 192
+    rng = np.random.default_rng(0)
+    v1 = rng.normal(100, 10, (40, 50))
+    x, y = rng.uniform(0, 50, 20), rng.uniform(0, 40, 20)
+    d = rng.uniform(-2, 2, 20)
+    seeds = np.stack([np.c_[x, y], np.c_[x + d, y + 0.5 + 0.01 * x]], 1)   # y1 − y0 = e0 + e1 x
+    given = {"noise_sigma": (1.0, 1.0)}
+    cd = dp.shared_calibration(None, v1, seeds, given)
+    cv = vp.shared_calibration(None, v1, seeds, given)
+    assert given == {"noise_sigma": (1.0, 1.0)}                          # copies
+    assert "epipolar" not in cd and "coef_offset" not in cv
+    spline = ndimage.spline_filter(v1, order=3, mode="mirror").mean()
+    assert cd["coef_offset"] == pytest.approx(spline) and cd["noise_sigma"] == (1.0, 1.0)
+    assert np.allclose(cv["epipolar"][:2], [0.5, 0.01], atol=1e-9)
+    assert dp.shared_calibration(None, v1, seeds, {"coef_offset": 3.0})["coef_offset"] == 3.0
