@@ -30,6 +30,7 @@ import json
 import math
 import os
 import pickle
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -319,6 +320,18 @@ def code_fingerprint():
     return h.hexdigest()
 
 
+def _peak_rss_gb():
+    """This process's peak resident set so far, GB (``getrusage``), or None where the
+    system does not give it."""
+    try:
+        import resource
+    except ImportError:          # Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    scale = 1.0 if sys.platform == "darwin" else 1024.0      # bytes on macOS, kB elsewhere
+    return round(peak * scale / 1e9, 3)
+
+
 def _user_cache_dir():
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "semlab"
@@ -418,7 +431,8 @@ class Analysis:
         log.parent.mkdir(parents=True, exist_ok=True)
         with open(log, "a", encoding="utf-8") as fh:
             fh.write(json.dumps({"step": step, "key": key, "event": event,
-                                 "seconds": round(seconds, 3), "pid": os.getpid()}) + "\n")
+                                 "seconds": round(seconds, 3), "pid": os.getpid(),
+                                 "peak_rss_gb": _peak_rss_gb()}) + "\n")
 
     def _cached(self, step, params, compute, write=None):
         """The result of ``step`` for ``params``: from memory, the cache, or ``compute()``;

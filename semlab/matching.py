@@ -834,24 +834,26 @@ def _stage_variational(st):
 
 def _variational_map(view0, view1, seeds, params, tiling=None):
     """Stage 9's variational parallax map of a view pair, seeded by ``seeds`` ((N, 2, 2)
-    matches). Views of more than ``tiling.min_pixels`` pixels (default
-    :data:`~semlab.tiled_stereo.DEFAULT_TILING`: the size above which ``semlab run``
-    matches in tiles) are mapped in windows of ``tiling.variational_tile_px`` with one
-    calibration, one after another in this thread (:func:`semlab.tiled_stereo.tiled_parallax`,
-    ``scheduler="inline"``): the solve's memory grows with its area (a 1216² window
-    peaks at 1.1 GB, in 512 px windows at 0.35 GB, the points' parallax within 0.002 px RMS
-    of the whole map, ~1/8 of its σ; 2026-12-05). The tiles of the tiled matcher are mapped
-    whole: in windows, its run on a 3072×4096 pair peaked at 1.45 GB instead of 2.60 GB but
-    its stereo step took 1702 s instead of 882 s (the many window-sized arrays under
-    :func:`semlab.parallel.limit_heap_growth`'s 64 kB mmap threshold: 2 threads of 1216²
-    windows 254 s with it, 117 s without, whole 133 s / 97 s)."""
+    matches). Views of more than ``tiling.map_min_pixels`` pixels (default
+    :data:`~semlab.tiled_stereo.DEFAULT_TILING`: the size above which a height map is tiled)
+    are mapped in windows of ``tiling.variational_tile_px`` with one calibration, one after
+    another in this thread (:func:`semlab.tiled_stereo.tiled_parallax`,
+    ``scheduler="inline"``): the solve's memory grows with its area (a 1216² window peaks at
+    1.1 GB, in 512 px windows at 0.35 GB, the points' parallax within 0.002 px RMS of the
+    whole map, ~1/8 of its σ), so a tiled run's memory grows by ~0.35 GB, not ~1.1 GB, per
+    tile in flight (per core). The 3072×4096 ``semlab run`` (two matching tiles in flight,
+    ``benchmarks/memory_large.py --run``, 2026-12-05): the ``semlab`` process peaked at
+    1.52 GB with a 850 s stereo step; with the tiles' maps whole, 2.96 GB and 656 s.
+    (Windows were twice as slow under :func:`semlab.parallel.limit_heap_growth`'s former
+    64 kB mmap threshold: 1702 s.)"""
     from .parallel import INLINE
     from .tiled_stereo import DEFAULT_TILING, tiled_parallax
     from .variational import VariationalParams, variational_parallax
 
     t = tiling or DEFAULT_TILING
     prm = params or VariationalParams()
-    if not t.tiles(np.shape(view0)):
+    shape = np.shape(view0)
+    if shape[0] * shape[1] <= t.map_min_pixels:
         return variational_parallax(view0, view1, seeds=seeds, params=prm)
     return tiled_parallax(view0, view1, seeds=seeds, params=prm, method=variational_parallax,
                           tiling=t, scheduler=INLINE, progress=False)

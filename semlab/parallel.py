@@ -51,8 +51,9 @@ import numpy as np
 from .errors import SemlabError, TrackingError
 
 __all__ = ["SCHEDULER_ENV", "INLINE", "DEFAULT_TILE_PX", "Tile", "plan_tiles", "dask_client",
-           "limit_heap_growth", "set_default_scheduler", "scheduler_scope", "check_scheduler", "map_tiles", "tiled_icgn", "tiled_track_reverse",
-           "tiled_dense_parallax", "map_roi_tiles"]
+           "limit_heap_growth", "release_freed_memory", "set_default_scheduler",
+           "scheduler_scope", "check_scheduler", "map_tiles", "tiled_icgn",
+           "tiled_track_reverse", "tiled_dense_parallax", "map_roi_tiles"]
 
 #: Environment variable holding the default scheduler address (``tcp://HOST:PORT``).
 SCHEDULER_ENV = "SEMLAB_SCHEDULER"
@@ -164,17 +165,44 @@ def _requested_scheduler(scheduler):
     return scheduler if scheduler is not None else (os.environ.get(SCHEDULER_ENV) or None)
 
 
-def limit_heap_growth(mmap_threshold_bytes=64 * 1024, arena_max=2):
-    """Make glibc's allocator give freed work arrays back to the system (Linux).
+# set by limit_heap_growth: each tile gives its freed memory back when it is done
+_TRIM_AFTER_TILE = [False]
 
-    The tiles of a dense map run in threads; each thread's malloc arena keeps the freed
-    work arrays of its tiles (glibc raises its mmap threshold after every large free, so
-    later arrays come from the arenas, which fragment), and the process grows with the
-    number of tiles although no tile's arrays are kept. A fixed mmap threshold and a
-    couple of arenas stop this (dask.distributed sets ``MALLOC_TRIM_THRESHOLD_`` on its
-    workers for the same reason): a 1536×2048 map in tiles peaks at 0.90 GB instead of
-    1.38 GB (2026-12-01). ``semlab run`` calls it; call it first in a notebook kernel that
-    maps large views.
+
+def _libc():
+    """glibc (ctypes), or None on other systems."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name or not hasattr(os, "uname") or os.uname().sysname != "Linux":
+        return None
+    try:
+        libc = ctypes.CDLL(name)
+        libc.mallopt, libc.malloc_trim       # noqa: B018 (glibc has both)
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def limit_heap_growth(mmap_threshold_bytes=16 * 1024 * 1024, arena_max=2):
+    """Make glibc's allocator give the freed work arrays of tiles back to the system (Linux).
+
+    The tiles of a dense map or of the tiled matcher run in threads; each thread's malloc
+    arena keeps the freed work arrays of its tiles (glibc raises its mmap threshold after
+    every large free, so later arrays come from the arenas, which fragment), and the process
+    grows with the number of tiles although no tile's arrays are kept. Three settings stop
+    this (dask.distributed sets ``MALLOC_TRIM_THRESHOLD_`` on its workers for the same
+    reason): a fixed mmap threshold (arrays above it are mapped and unmapped), a couple of
+    arenas, and ``malloc_trim`` after every tile of :func:`map_tiles` in this process (the
+    freed pages inside the arenas go back at once).
+
+    The threshold is a trade: arrays below it are reused from the arenas without page
+    faults. At 64 kB (the default until 2026-12-05) a 3072×4096 ``semlab run`` (512² map)
+    peaked at 2.60 GB with a 882 s stereo step; at 16 MB without the trim at 2.91 GB and
+    671 s (``benchmarks/memory_large.py --run``, results in
+    ``benchmarks/results/memory_large_run.md``). ``semlab run`` calls it; call it first in
+    a notebook kernel that maps large views.
 
     Parameters
     ----------
@@ -188,21 +216,34 @@ def limit_heap_growth(mmap_threshold_bytes=64 * 1024, arena_max=2):
     bool
         True when the settings took effect (a glibc system), else False (nothing done).
     """
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    if not name or not hasattr(os, "uname") or os.uname().sysname != "Linux":
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
+    libc = _libc()
+    if libc is None:
         return False
     m_trim_threshold, m_mmap_threshold, m_arena_max = -1, -3, -8
-    return bool(mallopt(m_mmap_threshold, int(mmap_threshold_bytes))
-                and mallopt(m_trim_threshold, int(2 * mmap_threshold_bytes))
-                and mallopt(m_arena_max, int(arena_max)))
+    ok = bool(libc.mallopt(m_mmap_threshold, int(mmap_threshold_bytes))
+              and libc.mallopt(m_trim_threshold, int(2 * mmap_threshold_bytes))
+              and libc.mallopt(m_arena_max, int(arena_max)))
+    _TRIM_AFTER_TILE[0] = ok
+    return ok
+
+
+def release_freed_memory():
+    """Give the free pages of every malloc arena back to the system (glibc's
+    ``malloc_trim(0)``); :func:`map_tiles` calls it after each tile once
+    :func:`limit_heap_growth` took effect.
+
+    Returns
+    -------
+    bool
+        True when some memory was given back, False when none was or not on glibc.
+    """
+    libc = _libc()
+    return bool(libc is not None and libc.malloc_trim(0))
+
+
+def _tile_done():
+    if _TRIM_AFTER_TILE[0]:
+        release_freed_memory()
 
 
 @contextlib.contextmanager
@@ -275,7 +316,8 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
     driver only ever holds the arguments (tile crops) of the running tasks and the next.
 
     With ``client`` None (:data:`INLINE`) the tasks run here, one after another, in
-    ``jobs`` order.
+    ``jobs`` order. After :func:`limit_heap_growth`, each task gives its freed memory back
+    when it ends (:func:`release_freed_memory`, in the process that ran it).
 
     Yields
     ------
@@ -288,6 +330,7 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
         with tqdm(total=n_jobs, desc=desc, unit="tile", disable=not progress) as bar:
             for i, args in jobs:
                 result = fn(*args)
+                _tile_done()
                 bar.update()
                 yield i, result
         return
@@ -333,7 +376,10 @@ def map_tiles(client, fn, jobs, n_jobs, desc="tiles", progress=True):
 
 
 def _call(fn, args):
-    return fn(*args)
+    try:
+        return fn(*args)
+    finally:
+        _tile_done()
 
 
 def _tiles_needed(shape, tile_px, scheduler):

@@ -1,5 +1,7 @@
 """The command line: info, synth, run (refuses non-empty output folders)."""
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -154,6 +156,10 @@ def test_run_on_partial_experiment_finishes(tmp_path, only, capsys):
     assert len(computed) == len(set(computed)) and len({e["pid"] for e in log
                                                           if e["event"] != "cached"}) == 1
     assert any(e["event"] == "cached" for e in log)
+    if sys.platform.startswith("linux"):
+        # each entry carries the process's peak memory so far (which step raised it)
+        peaks = [e["peak_rss_gb"] for e in log if e["event"] != "cached"]
+        assert all(p > 0.01 for p in peaks) and peaks == sorted(peaks)
     html = (out / "05_tracking.html").read_text()
     # the printed summary (not the code, which the HTML also shows) tells what ran
     tracked = re.search(r"\d+ tracks \(\d+ corner-seeded", html) is not None

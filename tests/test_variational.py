@@ -201,9 +201,9 @@ def test_default_noise_is_the_matchers_calibrated_one():
 
 
 def test_stage9_maps_large_views_in_windows(scene_pair, monkeypatch):
-    """auto_match's stage 9 maps views of more than min_pixels (those the run would match
-    in tiles) in windows (bounded memory: no solve larger than a window and its reach), at
-    the seeds as the whole-view map."""
+    """auto_match's stage 9 maps views of more than map_min_pixels (the size above which a
+    height map is tiled) in windows (bounded memory: no solve larger than a window and its
+    reach), at the seeds as the whole-view map."""
     from semlab import tiled_stereo as ts
     from semlab.fusion import sample_parallax
     from semlab.matching import _variational_map
@@ -223,7 +223,7 @@ def test_stage9_maps_large_views_in_windows(scene_pair, monkeypatch):
     whole = _variational_map(i0, i1, seeds, None)
     assert solved == [i0.shape]
     solved.clear()
-    t = ts.TilingParams(min_pixels=64 * 64, variational_tile_px=64, max_parallax_px=8)
+    t = ts.TilingParams(map_min_pixels=64 * 64, variational_tile_px=64, max_parallax_px=8)
     win = _variational_map(i0, i1, seeds, None, tiling=t)
     reach = va.VariationalParams().margin_px() + 8 + 2 * 7 + 10
     assert len(solved) == 6 and max(max(s) for s in solved) <= 64 + 2 * reach + 16
