@@ -31,8 +31,8 @@ rendered with a smooth parallax field of ±4 px, the frames with a displacement 
 
     python benchmarks/memory_large.py                 # all four cases, ~5-10 min on 2 cores
     python benchmarks/memory_large.py --cases icgn_tiled --size 1536x2048
-    python benchmarks/memory_large.py --run --map-roi 512       # semlab run, ~30 min shared
-    python benchmarks/memory_large.py --run --map-roi 0         # the whole 12.6 Mpx map, ~1 h
+    python benchmarks/memory_large.py --run --map-roi 512       # semlab run, ~15 min on 2 cores
+    python benchmarks/memory_large.py --run --map-roi 0         # the whole 12.6 Mpx map, ~25 min
 """
 
 from __future__ import annotations

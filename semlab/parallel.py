@@ -198,11 +198,13 @@ def limit_heap_growth(mmap_threshold_bytes=16 * 1024 * 1024, arena_max=2):
     freed pages inside the arenas go back at once).
 
     The threshold is a trade: arrays below it are reused from the arenas without page
-    faults. At 64 kB (the default until 2026-12-05) a 3072×4096 ``semlab run`` (512² map)
-    peaked at 2.60 GB with a 882 s stereo step; at 16 MB without the trim at 2.91 GB and
-    671 s (``benchmarks/memory_large.py --run``, results in
-    ``benchmarks/results/memory_large_run.md``). ``semlab run`` calls it; call it first in
-    a notebook kernel that maps large views.
+    faults, arrays above it cost fresh pages every time. The 3072×4096 ``semlab run`` of
+    ``benchmarks/memory_large.py --run`` (2026-12-05, results in
+    ``benchmarks/results/memory_large_run.md``), with stage 9's maps whole per matching
+    tile: at 64 kB (the default until then) 2.60 GB and a 882 s stereo step; at 16 MB 2.91 GB
+    and 671 s, but the whole 12.6 Mpx map then peaked at 3.54 GB; with the trim 2.96 GB and
+    656 s, whole map 2.92 GB (its heightmap step 527 s, 1100 s at 64 kB). ``semlab run``
+    calls it; call it first in a notebook kernel that maps large views.
 
     Parameters
     ----------
