@@ -805,7 +805,7 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     params = params or DenseParams()
     method = params.dense_method()
     if method is not dense_parallax:
-        notes.append(f"{method.__module__}.{method.__name__}")
+        notes.append(f"dense method {method.__module__}.{method.__name__}")
     noise, how = stereo_noise_sigma(views[0], views[1], stereo)
     cal = {"noise_sigma": noise}
     notes.append(f"image noise σ {noise[0]:.4g}, {noise[1]:.4g} (grey levels) {how}")

@@ -39,6 +39,7 @@ in pixels, origin at the centre of the top-left pixel.
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 import math
 import os
@@ -169,8 +170,9 @@ def _requested_scheduler(scheduler):
 _TRIM_AFTER_TILE = [False]
 
 
+@functools.lru_cache(maxsize=None)
 def _libc():
-    """glibc (ctypes), or None on other systems."""
+    """glibc (ctypes), or None on other systems (looked up once: called after every tile)."""
     import ctypes
     import ctypes.util
 

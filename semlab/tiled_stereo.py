@@ -68,7 +68,7 @@ class TilingParams:
         solve covers the tile and a ``margin_px`` band and holds ~0.75 kB per pixel at its
         peak (the multigrid set-up): ~0.3 GB for a 512² tile (a 1216² window: 1.1 GB;
         2026-12-05). Also the windows of stage 9 of :func:`~semlab.matching.auto_match`
-        on views of more than ``min_pixels`` pixels.
+        on views of more than ``map_min_pixels`` pixels.
     max_parallax_px : float
         Largest parallax left once a tile's view-1 crop is shifted by the median of its
         seeds' parallax (or the global affine), pixels: the crops reach this far.

@@ -715,8 +715,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
                               f"positions or the tuple of initial_guess, got shape {g.shape}")
     yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
     p0 = np.stack([g[..., 0] - xx, g[..., 1] - yy], -1)
-    cal = dict(calibration or {})
-    cal = _with_seed_epipolar(cal, seeds)
+    cal = _with_seed_epipolar(calibration, seeds)     # (a copy)
     cal = with_seed_noise(cal, view0, view1, seeds)   # the matcher's noise at the seeds
     if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
         prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))
