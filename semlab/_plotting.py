@@ -1,6 +1,6 @@
 """Shared pieces of the figure modules (:mod:`semlab.plots`, :mod:`semlab.plots_motion`):
 pyplot on demand, grey-level limits, the report font size and colour codes, the height unit,
-image downsampling, shared histogram bins."""
+image and map downsampling, shared histogram bins."""
 
 from __future__ import annotations
 
@@ -19,9 +19,13 @@ def _plt():
     return plt
 
 
-def display_range(img, lo=1.0, hi=99.0):
-    """Robust grey-level limits (percentiles) for showing an SEM image."""
-    a, b = np.percentile(img, [lo, hi])
+def display_range(img, lo=1.0, hi=99.0, max_samples=1 << 20):
+    """Robust grey-level limits (percentiles) for showing an SEM image (of at most
+    ``max_samples`` pixels on a regular sub-grid: the same limits, without a sorted copy of a
+    12 Mpx image)."""
+    img = np.asarray(img)
+    step = max(1, int(np.ceil(np.sqrt(img.size / max_samples))))
+    a, b = np.percentile(img[::step, ::step], [lo, hi])
     return (float(a), float(b)) if b > a else (float(a), float(a) + 1.0)
 
 
@@ -35,8 +39,8 @@ def height_unit(z_um):
     factor : float
         Multiply µm by it to get ``unit``.
     """
-    z = np.abs(np.asarray(z_um, float))
-    z = z[np.isfinite(z)]
+    z = np.asarray(z_um)
+    z = np.abs(z[np.isfinite(z)])          # the map's own dtype: no float64 copy of it
     return ("nm", 1000.0) if z.size == 0 or z.max() < 1.0 else ("µm", 1.0)
 
 
@@ -56,6 +60,40 @@ def downsample(img, max_px):
         return img, 1
     h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
     return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)), k
+
+
+def downsample_map(a, max_px):
+    """Block-mean a map with NaN holes so that its larger side is at most ``max_px`` pixels.
+
+    Unlike :func:`downsample`, a block is the mean of its *finite* pixels, and NaN only where
+    none of them is (a sparsely measured map stays visible).
+
+    Returns
+    -------
+    small : (h, w) float32 array
+    k : int
+        Block size, as in :func:`downsample`.
+    """
+    a = np.asarray(a)
+    k = max(1, int(np.ceil(max(a.shape[:2]) / float(max_px))))
+    if k == 1:
+        return a.astype(np.float32, copy=False), 1
+    h, w = (a.shape[0] // k) * k, (a.shape[1] // k) * k
+    blocks = a[:h, :w].reshape(h // k, k, w // k, k)
+    finite = np.isfinite(blocks)
+    n = finite.sum(axis=(1, 3))
+    total = np.where(finite, blocks, 0).sum(axis=(1, 3), dtype=np.float64)
+    out = np.full(n.shape, np.nan, np.float32)
+    np.divide(total, n, out=out, where=n > 0, casting="unsafe")
+    return out, k
+
+
+def _show_map(ax, a, k, pixel_size_um=None, **kw):
+    """``imshow`` a (downsampled, block ``k``) map on the full map's pixel (or µm) axes."""
+    s = pixel_size_um or 1.0
+    h, w = np.shape(a)[:2]
+    return ax.imshow(a, extent=(-0.5 * s, (w * k - 0.5) * s, (h * k - 0.5) * s, -0.5 * s),
+                     interpolation="nearest" if k == 1 else "antialiased", **kw)
 
 
 def _show_gray(ax, img, pixel_size_um=None, max_px=None):

@@ -5,7 +5,8 @@
     experiment.toml ─► Analysis(experiment, out_dir, config)
         .stereo()    ─► points3d.csv, calibration.json
         .heightmap() ─► heightmap.tif/_sigma.tif/.x3p/.gsf/.ply, surface_parameters.csv,
-                        bands.csv                       (seeded by .stereo())
+                        bands.csv                       (seeded by .stereo();
+                                                         .map_metrology() has the CSVs' numbers)
         .tracking()  ─► tracks.csv, displacements.csv   (seeded by .stereo())
         .strain()    ─► strain.npz                      (from .tracking())
 
@@ -570,6 +571,22 @@ class Analysis:
             The bands are the clicked cracks (``crack_id``) and the straight traces found in
             the map (:func:`semlab.metrology.map_bands`).
         """
+        hm, measured = self._heightmap_step()
+        return hm, measured["bands"]
+
+    def map_metrology(self):
+        """The metrology of the dense height map, computed once with it (the numbers of
+        ``surface_parameters.csv`` and ``bands.csv``; ``[metrology] regions`` included).
+
+        Returns
+        -------
+        dict
+            ``surface_parameters`` (list of dict, one row per region, ``"map"`` first),
+            ``bands`` and ``band_profiles`` (:func:`semlab.heightmap.measure_map`).
+        """
+        return self._heightmap_step()[1]
+
+    def _heightmap_step(self):
         import numpy as np
 
         from . import heightmap, metrology
@@ -599,12 +616,12 @@ class Analysis:
             bands = metrology.map_bands(hm.z_um, exp.pixel_size_um, sigma_um=hm.sigma_um,
                                         pts_px=res.pts[:, 0] - np.asarray(hm.roi[:2], float),
                                         crack_id=res.crack_id)
-            return hm, bands
+            regions = metrology.regions_on_map(exp.metrology_regions, hm.roi)
+            return hm, heightmap.measure_map(hm, regions=regions, bands=bands)
 
         def write(result, folder):
-            regions = metrology.regions_on_map(exp.metrology_regions, result[0].roi)
-            return list(heightmap.write_heightmap_results(result[0], folder, regions=regions,
-                                                          bands=result[1]).values())
+            return list(heightmap.write_heightmap_results(result[0], folder,
+                                                          measured=result[1]).values())
 
         return self._cached("heightmap", self.config.for_step("heightmap"), compute, write)
 

@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .errors import GeometryError, ImageError, SemlabError
-from .heightmap_results import hillshade, write_heightmap_results
+from .heightmap_results import hillshade, measure_map, write_heightmap_results
 from .pipeline import rows_in_views
 
 __all__ = [
@@ -62,6 +62,7 @@ __all__ = [
     "stereo_noise_sigma",
     "heightmap_from_stereo",
     "hillshade",
+    "measure_map",
     "write_heightmap_results",
 ]
 

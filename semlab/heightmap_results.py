@@ -1,7 +1,8 @@
 """What is made of a dense height map (:class:`semlab.heightmap.HeightMap`): its hill-shaded
-relief and its result files (TIFF, X3P, GSF, PLY, ISO 25178 parameters, band profiles).
+relief, its metrology (ISO 25178 parameters, band profiles) and its result files (TIFF, X3P,
+GSF, PLY, CSV).
 
-Both names are re-exported by :mod:`semlab.heightmap`.
+Every name is re-exported by :mod:`semlab.heightmap`.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import numpy as np
 
 from .errors import SemlabError
 
-__all__ = ["hillshade", "write_heightmap_results"]
+__all__ = ["hillshade", "measure_map", "write_heightmap_results"]
 
 
 def hillshade(z_um, pixel_size_um, azimuth_deg=315.0, altitude_deg=45.0, z_factor=1.0):
@@ -32,7 +33,37 @@ def hillshade(z_um, pixel_size_um, azimuth_deg=315.0, altitude_deg=45.0, z_facto
     return np.where(np.isfinite(z), shade, np.nan)
 
 
-def write_heightmap_results(result, out_dir, overwrite=False, regions=None, bands=None):
+def measure_map(result, regions=None, bands=None):
+    """The metrology of a height map: ISO 25178 areal parameters and profiles across bands.
+
+    Parameters
+    ----------
+    result : HeightMap
+    regions : dict name -> (x0, y0, x1, y1) or (H, W) bool mask, optional
+        Named regions on the map's pixel grid (:func:`semlab.metrology.regions_on_map`).
+    bands : list of semlab.metrology.Band, optional
+        Default: detected in the map (:func:`semlab.metrology.map_bands`).
+
+    Returns
+    -------
+    dict
+        ``surface_parameters``: the rows of :func:`semlab.metrology.surface_parameters`
+        (``"map"`` first, then each region); ``bands``: the bands; ``band_profiles``: one
+        :func:`semlab.metrology.band_profile` per band, in the same order.
+    """
+    from . import metrology
+
+    s = result.pixel_size_um
+    if bands is None:
+        bands = metrology.map_bands(result.z_um, s, sigma_um=result.sigma_um)
+    return {"surface_parameters": metrology.surface_parameters(result.z_um, s, regions=regions),
+            "bands": list(bands),
+            "band_profiles": [metrology.band_profile(result.z_um, result.sigma_um, s, b)
+                              for b in bands]}
+
+
+def write_heightmap_results(result, out_dir, overwrite=False, regions=None, bands=None,
+                            measured=None):
     """Write the dense map and its metrology into ``out_dir``.
 
     Files: ``heightmap.tif`` (float32 µm, NaN = not measured), ``heightmap_sigma.tif``
@@ -48,6 +79,9 @@ def write_heightmap_results(result, out_dir, overwrite=False, regions=None, band
     bands : list of semlab.metrology.Band, optional
         Default: detected in the map (:func:`semlab.metrology.map_bands`; pass the clicked
         cracks' bands from :func:`semlab.metrology.map_bands` with ``pts_px, crack_id``).
+    measured : dict, optional
+        The map's metrology already computed by :func:`measure_map` (then ``regions`` and
+        ``bands`` are not used); default: :func:`measure_map` of ``regions`` and ``bands``.
 
     Returns
     -------
@@ -75,10 +109,9 @@ def write_heightmap_results(result, out_dir, overwrite=False, regions=None, band
     formats.write_gsf(paths["heightmap.gsf"], result.z_um, s, title="semlab height map")
     formats.write_ply(paths["heightmap.ply"], result.z_um, s, sigma_um=result.sigma_um,
                       origin_px=result.roi[:2])
-    table = metrology.surface_parameters(result.z_um, s, regions=regions)
-    metrology.write_surface_parameters_csv(paths["surface_parameters.csv"], table)
-    if bands is None:
-        bands = metrology.map_bands(result.z_um, s, sigma_um=result.sigma_um)
-    prof = [metrology.band_profile(result.z_um, result.sigma_um, s, b) for b in bands]
-    metrology.write_bands_csv(paths["bands.csv"], prof)
+    if measured is None:
+        measured = measure_map(result, regions=regions, bands=bands)
+    metrology.write_surface_parameters_csv(paths["surface_parameters.csv"],
+                                           measured["surface_parameters"])
+    metrology.write_bands_csv(paths["bands.csv"], measured["band_profiles"])
     return paths

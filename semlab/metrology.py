@@ -47,8 +47,9 @@ BANDS_COLUMNS = ("band_id", "source", "x0_px", "y0_px", "x1_px", "y1_px", "angle
                  "intrusion_err_um", "width_um", "width_err_um", "n_pixels")
 
 
-def _as_map(z, name="z_um"):
-    a = np.asarray(z, float)
+def _as_map(z, name="z_um", keep_float32=False):
+    a = np.asarray(z)
+    a = a if keep_float32 and a.dtype == np.float32 else a.astype(float, copy=False)
     if a.ndim != 2 or min(a.shape) < 2:
         raise SemlabError(f"{name} must be a 2D height map, got shape {a.shape}")
     return a
@@ -552,8 +553,10 @@ def profile_between(z_um, sigma_um, p0_px, p1_px, pixel_size_um, width_px=1.0, s
     """
     from scipy import ndimage
 
-    z = _as_map(z_um)
-    sg = _as_map(sigma_um, "sigma_um") if sigma_um is not None else np.zeros_like(z)
+    # a float32 map is sampled as it is (a click on a 12.6 Mpx map copies nothing)
+    z = _as_map(z_um, keep_float32=True)
+    sg = (_as_map(sigma_um, "sigma_um", keep_float32=True) if sigma_um is not None
+          else np.zeros(z.shape, np.float32))
     p0, p1, L = _segment(p0_px, p1_px, "p0_px and p1_px", "pixel pairs", "a segment")
     m = int(np.floor(L / step_px)) + 1
     t = np.linspace(0.0, L, m)
@@ -567,7 +570,7 @@ def profile_between(z_um, sigma_um, p0_px, p1_px, pixel_size_um, width_px=1.0, s
         coords = [xy[:, 1], xy[:, 0]]
         zs.append(ndimage.map_coordinates(z, coords, order=1, mode="constant", cval=np.nan))
         ss.append(ndimage.map_coordinates(sg, coords, order=1, mode="constant", cval=np.nan))
-    zs, ss = np.array(zs), np.array(ss)
+    zs, ss = np.array(zs, float), np.array(ss, float)
     with np.errstate(invalid="ignore"):
         zm = zs.mean(0)
         sm = np.sqrt((ss ** 2).mean(0))

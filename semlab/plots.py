@@ -2,8 +2,9 @@
 
 Functions take numpy arrays (and an optional matplotlib ``Axes``) and return the figure or
 axes they drew on, so notebooks stay thin. Heights below 1 µm are shown in nm
-(:func:`height_unit`); images in report figures are downsampled to the size they are seen
-at (:func:`downsample`), which keeps executed notebooks small.
+(:func:`height_unit`); images and maps in report figures are downsampled to the size they
+are seen at (:func:`downsample`, :func:`downsample_map`), which keeps executed notebooks and
+the notebook kernel small (a 3072×4096 map is shown from a 1024 px copy).
 """
 
 from __future__ import annotations
@@ -11,14 +12,15 @@ from __future__ import annotations
 import numpy as np
 
 from ._plotting import (FLAG_COLOURS, REPORT_FONTSIZE, SEED_COLOURS, _plt, _show_gray,
-                        display_range, downsample, height_unit, shared_bins)
+                        _show_map, display_range, downsample, downsample_map, height_unit,
+                        shared_bins)
 from .plots_motion import (displacement_histograms, lateral_vs_depth, plot_fb_errors,
                            principal_directions, strain_history, strain_maps, tracks_overview)
 
 __all__ = [
     "display_range", "show_image", "add_scale_bar", "show_images", "show_height_map",
     "show_line_families", "show_epipolar_lines", "plot_stability", "show_static",
-    "height_unit", "downsample", "show_height_points", "plot_height_projections",
+    "height_unit", "downsample", "downsample_map", "show_height_points", "plot_height_projections",
     "plot_point_profile", "trend_sentence", "tracks_overview", "plot_fb_errors", "shared_bins",
     "displacement_histograms", "show_picked_points", "show_line_families_views",
     "stability_figure", "lateral_vs_depth", "strain_maps", "principal_directions",
@@ -94,26 +96,29 @@ def show_images(images, titles=None, pixel_size_um=None, ncols=None, size=3.6):
     return fig
 
 
-def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="RdBu_r"):
+def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="RdBu_r",
+                    max_px=1024):
     """A height map with a symmetric diverging colour scale; z > 0 is an extrusion.
 
     Axes in µm when ``pixel_size_um`` is given (else pixels); heights in nm where every
-    ``|z|`` is below 1 µm (:func:`height_unit`).
+    ``|z|`` is below 1 µm (:func:`height_unit`). A map larger than ``max_px`` is shown as
+    block means (:func:`downsample_map`) on the full map's axes.
 
     Parameters
     ----------
     z_um : (H, W) array of heights (µm), NaN where unknown
+    max_px : int
+        Largest side shown, pixels.
     """
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
     unit, f = height_unit(z_um)
-    z = np.asarray(z_um, float) * f
-    lim = float(np.nanpercentile(np.abs(z), 99.5)) or 1.0
-    s = pixel_size_um or 1.0
-    h, w = z.shape
-    im = ax.imshow(z, cmap=cmap, vmin=-lim, vmax=lim,
-                   extent=(-0.5 * s, (w - 0.5) * s, (h - 0.5) * s, -0.5 * s))
+    z, k = downsample_map(z_um, max_px)
+    z = z * np.float32(f)
+    finite = np.abs(z[np.isfinite(z)])
+    lim = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    im = _show_map(ax, z, k, pixel_size_um, cmap=cmap, vmin=-(lim or 1.0), vmax=lim or 1.0)
     xy_unit = "µm" if pixel_size_um else "px"
     ax.set_xlabel(f"x ({xy_unit})")
     ax.set_ylabel(f"y ({xy_unit})")
@@ -260,7 +265,8 @@ def show_static(fig, dpi=90, fmt="png", quality=80):
 
 
 
-def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cmap="coolwarm"):
+def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cmap="coolwarm",
+                       max_px=1024):
     """Measured heights as dots over the image, in µm axes.
 
     Heights below 1 µm are shown in nm. The dots have a black edge so that a near-zero
@@ -274,6 +280,8 @@ def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cm
     z_um : (N,) heights (µm), z > 0 extrusion
     pixel_size_um : float
     ax : Axes, optional
+    max_px : int
+        The image is shown from block means of at most this side (:func:`downsample`).
 
     Returns
     -------
@@ -283,7 +291,7 @@ def show_height_points(img, pts_px, z_um, pixel_size_um, ax=None, title=None, cm
     if ax is None:
         _, ax = plt.subplots(figsize=(8, 5.5))
     unit, f = height_unit(z_um)
-    s = _show_gray(ax, img, pixel_size_um)
+    s = _show_gray(ax, img, pixel_size_um, max_px=max_px)
     z = np.asarray(z_um, float) * f
     lim = float(np.nanpercentile(np.abs(z), 99)) or 1.0
     p = np.asarray(pts_px, float)
@@ -410,41 +418,49 @@ def show_picked_points(images, pts, point_id, titles=None, pixel_size_um=None):
 
 
 # ------------------------------------------------------------------ dense height maps
-def show_heightmap_panels(z_um, sigma_um, pixel_size_um=None, size=3.6):
-    """Three panels: the height map, its 1σ (nm) and the measured mask.
+def show_heightmap_panels(z_um, sigma_um, pixel_size_um=None, size=3.6, max_px=1024):
+    """Three panels: the height map, its 1σ (nm) and the measured mask, all on the map's
+    axes (µm when ``pixel_size_um`` is given) and shown from block means of at most
+    ``max_px`` pixels a side (the mask as the measured fraction of each block).
 
     Returns the figure (axes: map, σ, mask).
     """
     plt = _plt()
     fig, axs = plt.subplots(1, 3, figsize=(3 * size + 1.5, size * 0.8), constrained_layout=True)
-    show_height_map(z_um, ax=axs[0], pixel_size_um=pixel_size_um)
-    sg = np.asarray(sigma_um, float) * 1e3
-    hi = float(np.nanpercentile(sg, 99)) if np.isfinite(sg).any() else 1.0
-    im = axs[1].imshow(sg, cmap="magma", vmin=0, vmax=hi or 1.0)
+    show_height_map(z_um, ax=axs[0], pixel_size_um=pixel_size_um, max_px=max_px)
+    sg, k = downsample_map(sigma_um, max_px)
+    sg = sg * np.float32(1e3)
+    hi = float(np.percentile(sg[np.isfinite(sg)], 99)) if np.isfinite(sg).any() else 1.0
+    im = _show_map(axs[1], sg, k, pixel_size_um, cmap="magma", vmin=0, vmax=hi or 1.0)
     fig.colorbar(im, ax=axs[1], label="1σ (nm)")
     axs[1].set_title("height 1σ (nm)")
-    valid = np.isfinite(np.asarray(z_um, float))
-    axs[2].imshow(valid, cmap="gray", vmin=0, vmax=1)
-    axs[2].set_title(f"measured: {100 * valid.mean():.1f} %")
+    valid = np.isfinite(np.asarray(z_um))
+    fraction = float(valid.mean()) if valid.size else 0.0
+    _show_map(axs[2], downsample(valid, max_px)[0], k, pixel_size_um, cmap="gray", vmin=0,
+              vmax=1)
+    axs[2].set_title(f"measured: {100 * fraction:.1f} %")
+    unit = "µm" if pixel_size_um else "px"
     for ax in axs[1:]:
-        ax.set_xlabel("x (px)")
-        ax.set_ylabel("y (px)")
+        ax.set_xlabel(f"x ({unit})")
+        ax.set_ylabel(f"y ({unit})")
     return fig
 
 
 def show_hillshade(z_um, pixel_size_um, ax=None, azimuth_deg=315.0, altitude_deg=45.0,
-                   z_factor=5.0, title=None):
+                   z_factor=5.0, title=None, max_px=1024):
     """Hill-shaded relief of a height map (heights exaggerated ``z_factor`` times);
-    not-measured pixels in red."""
+    not-measured pixels in red. A map larger than ``max_px`` is shaded from its block means
+    (:func:`downsample_map`, slopes over the blocks' spacing), which is all a figure shows."""
     from .heightmap import hillshade
 
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
-    hs = hillshade(z_um, pixel_size_um, azimuth_deg, altitude_deg, z_factor)
+    z, k = downsample_map(z_um, max_px)
+    hs = hillshade(z, pixel_size_um * k, azimuth_deg, altitude_deg, z_factor)
     rgb = np.dstack([hs, hs, hs])
     rgb[~np.isfinite(hs)] = (0.8, 0.1, 0.1)
-    ax.imshow(np.nan_to_num(rgb))
+    _show_map(ax, np.nan_to_num(rgb), k)
     ax.set_title(title or f"hill shade (z × {z_factor:g}, light from {azimuth_deg:g}°)")
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
@@ -472,16 +488,19 @@ def plot_profile(profile, ax=None, label=None, color=None, x_key="distance_um"):
     return ax
 
 
-def show_bands(z_um, bands, ax=None, pixel_size_um=None):
-    """The height map with each band trace drawn and labelled by its id."""
-    ax = show_height_map(z_um, ax=ax, pixel_size_um=pixel_size_um, title="bands")
+def show_bands(z_um, bands, ax=None, pixel_size_um=None, max_px=1024):
+    """The height map with each band trace drawn and labelled by its id (axes in µm when
+    ``pixel_size_um`` is given, else pixels; the traces are in view-0 map pixels)."""
+    ax = show_height_map(z_um, ax=ax, pixel_size_um=pixel_size_um, title="bands",
+                         max_px=max_px)
+    s = pixel_size_um or 1.0
     for b in bands:
         (x0, y0), (x1, y1) = b.p0_px, b.p1_px
-        ax.plot([x0, x1], [y0, y1], "k-", lw=1)
-        ax.text((x0 + x1) / 2, (y0 + y1) / 2, str(b.band_id), fontsize=8,
+        ax.plot([x0 * s, x1 * s], [y0 * s, y1 * s], "k-", lw=1)
+        ax.text(s * (x0 + x1) / 2, s * (y0 + y1) / 2, str(b.band_id), fontsize=8,
                 bbox=dict(fc="w", alpha=0.7, lw=0))
-    ax.set_xlim(-0.5, np.shape(z_um)[1] - 0.5)
-    ax.set_ylim(np.shape(z_um)[0] - 0.5, -0.5)
+    ax.set_xlim(-0.5 * s, (np.shape(z_um)[1] - 0.5) * s)
+    ax.set_ylim((np.shape(z_um)[0] - 0.5) * s, -0.5 * s)
     return ax
 
 

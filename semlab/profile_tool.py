@@ -24,8 +24,13 @@ class ProfileTool:
     z_um, sigma_um : (H, W) arrays
         Height map and its 1σ (µm), NaN where not measured.
     pixel_size_um : float
+        The map's axes are in µm (clicks too); the end points and the profile are in map
+        pixels.
     width_px : float
         Width of the averaged strip (see :func:`semlab.metrology.profile_between`).
+    max_px : int
+        Largest side of the map as shown (:func:`semlab.plots.downsample_map`); the profile
+        is always sampled from the full map.
 
     Attributes
     ----------
@@ -36,18 +41,20 @@ class ProfileTool:
     fig, ax_map, ax_profile : the matplotlib figure and axes.
     """
 
-    def __init__(self, z_um, sigma_um, pixel_size_um, width_px=1.0, figsize=(11, 4)):
+    def __init__(self, z_um, sigma_um, pixel_size_um, width_px=1.0, figsize=(11, 4),
+                 max_px=2048):
         plt = plots._plt()
-        self.z_um = np.asarray(z_um, float)
-        self.sigma_um = None if sigma_um is None else np.asarray(sigma_um, float)
+        self.z_um = np.asarray(z_um)
+        self.sigma_um = None if sigma_um is None else np.asarray(sigma_um)
         self.pixel_size_um = float(pixel_size_um)
         self.width_px = float(width_px)
         self.points = []
         self.profile = None
         self.fig, (self.ax_map, self.ax_profile) = plt.subplots(
             1, 2, figsize=figsize, gridspec_kw={"width_ratios": [1.1, 1]})
-        plots.show_height_map(self.z_um, ax=self.ax_map, pixel_size_um=pixel_size_um,
-                              title="click two points")
+        # the map's axes are in µm; clicks come in µm and the end points are kept in pixels
+        plots.show_height_map(self.z_um, ax=self.ax_map, pixel_size_um=self.pixel_size_um,
+                              title="click two points", max_px=max_px)
         (self._line,) = self.ax_map.plot([], [], "k.-", lw=1.2, ms=8)
         self.ax_profile.set_xlabel("distance (µm)")
         self.ax_profile.set_ylabel("z (nm)")
@@ -58,7 +65,8 @@ class ProfileTool:
             return
         if len(self.points) >= 2:
             self.points = []
-        self.points.append((float(event.xdata), float(event.ydata)))
+        s = self.pixel_size_um
+        self.points.append((float(event.xdata) / s, float(event.ydata) / s))
         self._redraw()
 
     def set_points(self, p0_px, p1_px):
@@ -68,8 +76,8 @@ class ProfileTool:
         return self.profile
 
     def _redraw(self):
-        xs = [p[0] for p in self.points]
-        ys = [p[1] for p in self.points]
+        xs = [p[0] * self.pixel_size_um for p in self.points]
+        ys = [p[1] * self.pixel_size_um for p in self.points]
         self._line.set_data(xs, ys)
         if len(self.points) == 2:
             self.profile = metrology.profile_between(self.z_um, self.sigma_um, self.points[0],

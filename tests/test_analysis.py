@@ -233,7 +233,7 @@ def test_heightmap_roi_maps_only_that_window(computed, tmp_path):
         outside.heightmap()
 
 
-def test_named_metrology_regions_get_their_row(small_experiment, tmp_path):
+def test_named_metrology_regions_get_their_row(small_experiment, tmp_path, monkeypatch):
     import csv
 
     toml = small_experiment / "experiment.toml"
@@ -249,3 +249,19 @@ def test_named_metrology_regions_get_their_row(small_experiment, tmp_path):
     z = hm.z_um[:, :64][left]
     assert abs(float(rows["left"]["Sa_um"]) - np.mean(np.abs(z - z.mean()))) < 0.3 * float(
         rows["left"]["Sa_um"]) + 1e-4
+    # the notebooks show the numbers the step computed and wrote, not a second computation
+    measured = an.map_metrology()
+    assert [r["region"] for r in measured["surface_parameters"]] == list(rows)
+    for r in measured["surface_parameters"]:
+        assert float(rows[r["region"]]["n_pixels"]) == r["n_pixels"]
+        assert float(rows[r["region"]]["Sa_um"]) == pytest.approx(r["Sa"], rel=1e-3)
+    assert len(measured["band_profiles"]) == len(measured["bands"]) == len(an.heightmap()[1])
+    with open(tmp_path / "out" / "bands.csv", newline="") as f:
+        assert len(list(csv.DictReader(f))) == len(measured["band_profiles"])
+    from semlab import metrology
+
+    calls = []
+    monkeypatch.setattr(metrology, "surface_parameters", lambda *a, **k: calls.append(1))
+    again = semlab.Analysis(small_experiment, tmp_path / "out", n_boot=0, progress=False)
+    assert again.map_metrology()["surface_parameters"] == measured["surface_parameters"]
+    assert calls == []                 # loaded with the map from the step's cache

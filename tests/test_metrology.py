@@ -179,6 +179,12 @@ def test_band_plots():
     assert len(titles) == len(bands) and titles[0].startswith("band 0")
     ax = plots.show_bands(z, bands)
     assert len(ax.lines) == len(bands)
+    # in µm axes the traces are drawn in µm too, over the map, and the view is the map's
+    ax = plots.show_bands(z, bands, pixel_size_um=S)
+    (x0, y0), (x1, y1) = bands[0].p0_px, bands[0].p1_px
+    np.testing.assert_allclose(ax.lines[0].get_xydata(), [[x0 * S, y0 * S], [x1 * S, y1 * S]])
+    assert ax.get_xlim() == pytest.approx((-0.5 * S, 199.5 * S))
+    assert ax.get_xlim() == pytest.approx(ax.images[0].get_extent()[:2])
     ax = plots.plot_profile(mt.profile_between(z, None, (0, 0), (199, 149), S))
     assert ax.get_ylabel() == "z (nm)" and len(ax.collections) == 1
     plt.close("all")
@@ -192,19 +198,26 @@ def test_profile_tool_clicks_and_set_points():
 
     z = _ribbon()
     tool = ProfileTool(z, np.full(z.shape, 0.004), S)
-    click = lambda x, y, ax=tool.ax_map: SimpleNamespace(inaxes=ax, xdata=x, ydata=y, button=1)  # noqa: E731
+    # the map's axes are in µm, so are the clicks (event.xdata); the end points are pixels
+    assert tool.ax_map.get_xlabel() == "x (µm)"
+    click = lambda x, y, ax=tool.ax_map: SimpleNamespace(  # noqa: E731
+        inaxes=ax, xdata=x * S, ydata=y * S, button=1)
     tool._on_click(click(20.0, 20.0))
     assert tool.profile is None and len(tool.points) == 1
     tool._on_click(click(5.0, 5.0, ax=tool.ax_profile))      # clicks beside the map are ignored
     assert len(tool.points) == 1
     tool._on_click(click(180.0, 130.0))
+    assert tool.points == [pytest.approx((20.0, 20.0)), pytest.approx((180.0, 130.0))]
     ref = mt.profile_between(z, np.full(z.shape, 0.004), (20, 20), (180, 130), S)
     np.testing.assert_allclose(tool.profile["z_um"], ref["z_um"])
+    np.testing.assert_allclose(tool._line.get_xydata(), [[20 * S, 20 * S], [180 * S, 130 * S]])
     assert len(tool.ax_profile.lines) >= 1 and tool.ax_profile.get_ylabel() == "z (nm)"
     tool._on_click(click(30.0, 30.0))                        # a third click starts again
     assert len(tool.points) == 1
     prof = tool.set_points((0, 75), (199, 75))
     assert prof["distance_um"][-1] == pytest.approx(199 * S)
+    np.testing.assert_allclose(tool._line.get_xydata(), [[0, 75 * S], [199 * S, 75 * S]])
+    assert tool.ax_map.get_xlim() == pytest.approx((-0.5 * S, 199.5 * S))
     plt.close("all")
 
 

@@ -42,6 +42,44 @@ def test_downsample_block_means():
     assert k == 1 and same.shape == img.shape
 
 
+def test_downsample_map_averages_the_measured_pixels_of_each_block():
+    z = np.arange(6 * 8, dtype=np.float32).reshape(6, 8)
+    z[0, 0] = np.nan                       # a hole: its block is the mean of the other three
+    z[2:4, 2:4] = np.nan                   # a block with nothing measured stays NaN
+    small, k = plots.downsample_map(z, 4)
+    assert k == 2 and small.shape == (3, 4) and small.dtype == np.float32
+    assert small[0, 0] == pytest.approx(np.nanmean(z[:2, :2]))
+    assert np.isnan(small[1, 1]) and np.isfinite(np.delete(small.ravel(), 5)).all()
+    assert small[2, 3] == pytest.approx(z[4:6, 6:8].mean())
+    same, k = plots.downsample_map(z, 8)
+    assert k == 1 and np.array_equal(same, z, equal_nan=True)
+
+
+def test_large_maps_are_shown_from_block_means_on_the_full_maps_axes():
+    """A 3000 px map is drawn from a copy of at most max_px a side (the notebook kernel does
+    not hold 12 Mpx float64 copies), on axes that still span the whole map."""
+    rng = np.random.default_rng(1)
+    z = rng.normal(0, 0.05, (3000, 1200)).astype(np.float32)
+    z[:40] = np.nan
+    sg = np.full_like(z, 0.01)
+    ax = plots.show_height_map(z, pixel_size_um=0.03, max_px=1000)
+    im = ax.images[0]
+    assert max(im.get_array().shape) <= 1000
+    assert im.get_extent() == pytest.approx((-0.015, 1199.5 * 0.03, 2999.5 * 0.03, -0.015))
+    fig = plots.show_heightmap_panels(z, sg, pixel_size_um=0.03, max_px=1000)
+    for a in fig.axes[:3:2] + fig.axes[1:2]:
+        if a.images:
+            assert max(a.images[0].get_array().shape[:2]) <= 1000
+            assert a.images[0].get_extent()[1] == pytest.approx(1199.5 * 0.03)
+    assert fig.axes[2].get_title() == f"measured: {100 * np.isfinite(z).mean():.1f} %"
+    ax = plots.show_hillshade(z, 0.03, max_px=1000)
+    assert max(ax.images[0].get_array().shape[:2]) <= 1000
+    assert ax.images[0].get_extent()[1] == pytest.approx(1199.5)
+    img = rng.random((3000, 1200))
+    ax = plots.show_height_points(img, [[10, 10]], [0.01], 0.03, max_px=1000)
+    assert max(ax.images[0].get_array().shape) <= 1000
+
+
 def test_show_height_points_um_axes_nm_colourbar_and_contrasting_edges():
     rng = np.random.default_rng(0)
     img = rng.random((60, 80))

@@ -443,7 +443,6 @@ are above the same reference plane as the points. Written by
 `heightmap.ply`, `surface_parameters.csv` and `bands.csv`.
 """),
     code('''
-from semlab import metrology
 hm = None
 if res is not None and not an.config.heightmap:
     print("The dense height map is switched off for this run (config heightmap = false).")
@@ -463,10 +462,10 @@ if hm is not None:
     md("## Areal parameters (ISO 25178-2, `surfalize`) and profiles across the bands"),
     code('''
 if hm is not None:
-    regions = metrology.regions_on_map(exp.metrology_regions, hm.roi)  # [metrology] regions
-    for r in metrology.surface_parameters(hm.z_um, exp.pixel_size_um, regions=regions):
+    measured = an.map_metrology()  # computed with the map ([metrology] regions included)
+    for r in measured["surface_parameters"]:
         print(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()))
-    profs = [metrology.band_profile(hm.z_um, hm.sigma_um, exp.pixel_size_um, b) for b in bands]
+    profs = measured["band_profiles"]
     plots.show_static(plots.show_bands(hm.z_um, bands, pixel_size_um=exp.pixel_size_um).figure,
                       fmt="jpeg")
     if profs:
