@@ -35,6 +35,26 @@ def test_height_parameters_of_a_sine_with_and_without_holes():
         assert h[k] == pytest.approx(row[k], rel=0.02), k
 
 
+def test_sdr_summed_over_strips_is_the_whole_maps_with_a_strips_memory():
+    import tracemalloc
+
+    from surfalize import Surface
+
+    z = np.random.default_rng(0).normal(0, 0.05, (2048, 256))
+    whole = Surface(z, S, S).Sdr()
+    mt._sdr(z[:10], S)                                  # imports and caches out of the count
+    tracemalloc.start()
+    try:
+        by_strips = mt._sdr(z, S, strip_rows=64)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert by_strips == pytest.approx(whole, rel=1e-12)
+    assert mt._sdr(z[:66], S, strip_rows=64) == pytest.approx(Surface(z[:66], S, S).Sdr(),
+                                                              rel=1e-12)   # a 2-row last strip
+    assert peak < 0.5 * z.nbytes       # surfalize on the whole map: ~9 copies of it
+
+
 def test_sdr_of_a_tilted_plane_and_regions():
     g = 0.2                                              # slope dz/dx
     x = np.arange(100)[None, :] * np.ones((80, 1)) * S
