@@ -187,10 +187,17 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
     plt = _plt()
     s = pixel_size_um or 1.0
     unit = "µm" if pixel_size_um else "px"
-    ext = [grid_x_px[0] * s, grid_x_px[-1] * s, grid_y_px[-1] * s, grid_y_px[0] * s]
+    # each grid value is drawn as the cell centred on its grid point (imshow's extent is
+    # the outer edges: half a spacing beyond the first and last points)
+    gx, gy = np.asarray(grid_x_px, float), np.asarray(grid_y_px, float)
+    hx = 0.5 * (gx[-1] - gx[0]) / (len(gx) - 1) if len(gx) > 1 else 0.5
+    hy = 0.5 * (gy[-1] - gy[0]) / (len(gy) - 1) if len(gy) > 1 else 0.5
+    ext = [(gx[0] - hx) * s, (gx[-1] + hx) * s, (gy[-1] + hy) * s, (gy[0] - hy) * s]
     fig, axes = plt.subplots(1, len(maps), figsize=(4.5 * len(maps), 3.8), squeeze=False)
     for ax, (name, v) in zip(axes[0], maps.items()):
-        lim = float(np.nanpercentile(np.abs(v), 98)) or 1e-6
+        finite = np.abs(np.asarray(v, float))
+        finite = finite[np.isfinite(finite)]
+        lim = (float(np.percentile(finite, 98)) if finite.size else 0.0) or 1e-6
         im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
         ax.set_title(name, fontsize=REPORT_FONTSIZE + 1)
         ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)

@@ -262,7 +262,11 @@ def test_strain_maps_directions_and_history():
     fig = plots.strain_maps(gx, gy, {"E_xx": e, "E_yy": -e}, pixel_size_um=0.03)
     assert [ax.get_title() for ax in fig.axes[:2]] == ["E_xx", "E_yy"]
     assert fig.axes[0].get_xlabel() == "x (µm)"
-    assert fig.axes[0].images[0].get_extent()[1] == pytest.approx(90 * 0.03)
+    # the cells are centred on their grid points: edges half a spacing (5 px) beyond them
+    assert fig.axes[0].images[0].get_extent() == pytest.approx(
+        [-5 * 0.03, 95 * 0.03, 55 * 0.03, -5 * 0.03])
+    fig = plots.strain_maps(gx, gy, {"E_xx": np.full((6, 10), np.nan)})   # nothing measured
+    assert fig.axes[0].images[0].get_clim() == pytest.approx((-1e-6, 1e-6))
     ax = plots.principal_directions(gx, gy, e, np.zeros_like(e))
     assert ax.get_legend() is not None and ax.yaxis_inverted()
     ax = plots.strain_history({"exx": [0.0, 0.001, 0.002], "eyy": [0, 0, 0.001]},
