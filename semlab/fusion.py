@@ -26,7 +26,8 @@ import numpy as np
 
 from .errors import SemlabError
 
-__all__ = ["min_sigma_choice", "fuse_heightmaps", "inverse_variance", "sample_parallax"]
+__all__ = ["min_sigma_choice", "fuse_heightmaps", "inverse_variance", "sample_parallax",
+           "agreement_scale"]
 
 
 def min_sigma_choice(z_a, sigma_a, valid_a, z_b, sigma_b, valid_b):
@@ -144,6 +145,53 @@ def inverse_variance(a, sigma_a, b, sigma_b):
     fused = np.where(w > 0, w * np.nan_to_num(b) + (1 - w) * np.where(w < 1, a, 0.0), a)
     sigma = np.where(both, s_both, np.where(ok_b & ~ok_a, sb, sa))
     return fused, sigma, wb
+
+
+#: median of χ² with one degree of freedom: the median of u² for a standard normal u
+CHI2_1_MEDIAN = 0.454936423119572
+
+
+def agreement_scale(a, sigma_a, b, sigma_b):
+    """How much larger ``sigma_b`` must be for ``a`` and ``b`` to disagree as their σ say.
+
+    Estimates of the same quantities with independent errors differ by ``d = b − a`` with
+    variance ``σ_a² + σ_b²``. The scale is the ``k ≥ 1`` for which the median of
+    ``d² / (σ_a² + k² σ_b²)`` is that of χ² with one degree of freedom (0.455): a variance
+    component of ``b``'s estimated from the data, with ``σ_a`` taken as calibrated (a robust
+    median, so a few wrong estimates do not set it). 1 where the two already agree as
+    predicted or better (``σ_b`` is not lowered).
+
+    Parameters
+    ----------
+    a, b : (N,) arrays
+        The two estimates (e.g. the x position of the subset match and of the map).
+    sigma_a, sigma_b : (N,) arrays
+        Their 1σ. Rows with a non-finite or non-positive value are left out.
+
+    Returns
+    -------
+    float
+        ``k`` (1.0 with fewer than 8 usable rows).
+    """
+    a, sa, b, sb = (np.asarray(v, float).ravel() for v in (a, sigma_a, b, sigma_b))
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sb)
+              & (sa > 0) & (sb > 0))
+    if ok.sum() < 8:
+        return 1.0
+    d2, va, vb = (b[ok] - a[ok]) ** 2, sa[ok] ** 2, sb[ok] ** 2
+
+    def excess(k):
+        return np.median(d2 / (va + k * k * vb)) - CHI2_1_MEDIAN
+
+    if excess(1.0) <= 0:
+        return 1.0
+    hi = 2.0
+    while excess(hi) > 0 and hi < 1e6:
+        hi *= 2.0
+    from scipy.optimize import brentq
+
+    return float(brentq(excess, 1.0, hi, xtol=1e-4))
 
 
 def sample_parallax(dense, pts_px):

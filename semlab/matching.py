@@ -338,8 +338,11 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         on fifteen) and the variational map alone 0.77–1.11× (better on thirteen), with 66–81 %
         of the errors within 1σ and 91–97 % within 2σ. It costs one variational map per view
         pair: ``auto_match`` takes 3–5× as long (single thread, 2026-12-04: the 384×512 demo
-        pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). False: the subset
-        matches alone.
+        pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). The map's σ is
+        scaled by its agreement with the subset matches (:func:`semlab.fusion.agreement_scale`;
+        1 on every matrix cell, 1.44 on the real ``pollen_pot1`` view 1, where the stage
+        still makes the pair-to-pair agreement worse: docs/accuracy.md, "Stage 9 on real
+        data without truth"). False: the subset matches alone.
     variational_params : semlab.variational.VariationalParams, optional
         Parameters of stage 9's maps (default ``VariationalParams()``); recorded with the
         others (``asdict`` gives its fields).
@@ -797,10 +800,12 @@ def _filter_multiview(st):
 def _stage_variational(st):
     """Stage 9: the points' positions in each view whose match there passed its tests,
     averaged with the variational parallax map of that view pair (seeded by them), by
-    inverse variance; their 1σ become the average's (``st.fused_sig``)."""
+    inverse variance, the map's σ scaled by its agreement with the subset matches
+    (:func:`semlab.fusion.agreement_scale`); their 1σ become the average's
+    (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
-    from .fusion import inverse_variance, sample_parallax
+    from . import fusion
 
     sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
     for j in range(st.v):
@@ -818,7 +823,7 @@ def _stage_variational(st):
             continue
         dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
                               st.params.variational_params)
-        xy1, s1 = sample_parallax(dm, st.grid[idx])
+        xy1, s1 = fusion.sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
         # subset match by more than 3σ of the two (a tall object's hundreds of pixels of
         # curved parallax, which the map, refined around the flow, misses by pixels:
@@ -826,7 +831,11 @@ def _stage_variational(st):
         with np.errstate(invalid="ignore"):
             off = np.abs(xy1[:, 0] - st.out[idx, j, 0]) > 3 * np.hypot(sig[idx, j], s1)
         xy1[off] = np.nan
-        fused, s_f, wv = inverse_variance(st.out[idx, j], sig[idx, j], xy1, s1)
+        # the map's σ as its agreement with the subset matches says (a variance component
+        # from the data: 1 where it agrees as predicted, > 1 where its errors are larger
+        # than its σ, e.g. relief its prior flattens); the subsets' σ is calibrated
+        k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1)
+        fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1)
         st.out[idx, j] = fused
         used = wv > 0
         st.fused_sig[idx[used], j] = s_f[used]

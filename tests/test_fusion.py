@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from semlab.errors import SemlabError
+from semlab import fusion
 from semlab.fusion import fuse_heightmaps, min_sigma_choice
 from semlab.heightmap import HeightMap
 
@@ -123,3 +124,26 @@ def test_sample_parallax_bilinear_and_holes():
     assert np.allclose(xy1[3], [12.5 + 0.5 * 9.75, 9.85])
     assert np.all(np.isnan(xy1[1])) and np.isnan(s[1])     # next to a hole
     assert np.all(np.isnan(xy1[2])) and np.isnan(s[2])     # outside the roi
+
+
+def test_agreement_scale_is_the_missing_variance_of_the_second_estimate():
+    rng = np.random.default_rng(3)
+    n = 4000
+    truth = rng.normal(0, 5, n)
+    sa, sb = np.full(n, 0.1), rng.uniform(0.05, 0.2, n)
+    a = truth + sa * rng.standard_normal(n)
+    # b's errors as its σ say: 1 up to the median's sampling scatter; smaller than it says:
+    # exactly 1 (never lowered)
+    assert fusion.agreement_scale(a, sa, truth + sb * rng.standard_normal(n), sb) == \
+        pytest.approx(1.0, abs=0.05)
+    assert fusion.agreement_scale(a, sa, truth + 0.3 * sb * rng.standard_normal(n), sb) == 1.0
+    # b's errors 3× its σ: k with σ_a² + k² σ_b² the variance of the difference, ≈ 3
+    b = truth + 3 * sb * rng.standard_normal(n)
+    assert fusion.agreement_scale(a, sa, b, sb) == pytest.approx(3.0, rel=0.08)
+    # robust: 10 % wild rows barely move it; unusable rows are left out
+    wild = b.copy()
+    wild[: n // 10] += 50.0
+    sb_bad = sb.copy()
+    sb_bad[-5:] = np.nan
+    assert fusion.agreement_scale(a, sa, wild, sb_bad) == pytest.approx(3.0, rel=0.25)
+    assert fusion.agreement_scale(a[:5], sa[:5], b[:5], sb[:5]) == 1.0   # too few to tell

@@ -650,6 +650,52 @@ def test_variational_stage_keeps_the_subset_match_where_the_map_is_off(monkeypat
             assert d.max() == 0 and np.array_equal(on.sigma_px, off.sigma_px, equal_nan=True)
 
 
+def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
+    """Stage 9 weighs the map by its agreement with the subset matches, not by its σ alone:
+    a map whose errors are 3× its σ (noise added to it here) is down-weighted by the
+    agreement scale (fusion.agreement_scale, ~2.3 here), so the averaged points stay near
+    the subsets' accuracy and their error bars hold; with the map's σ taken as it says, the
+    average is worse than the subsets alone and its 1σ too small. An honest map (the
+    unperturbed one) gets a scale of 1."""
+    from dataclasses import replace
+
+    import semlab.fusion as fu
+    import semlab.variational as va
+
+    sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)
+    ims = [sc.render(TILTS[0], noise=0.3, seed=1), sc.render(TILTS[1], noise=0.3, seed=2)]
+    t0, t1 = np.deg2rad(TILTS)
+    real_map, real_scale = va.variational_parallax, fu.agreement_scale
+    scales = []
+
+    def noisy(*a, **k):
+        dm = real_map(*a, **k)
+        e = np.random.default_rng(5).standard_normal(dm.x1_px.shape)
+        return replace(dm, x1_px=dm.x1_px + 3 * dm.sigma_px * e)
+
+    def spy(*a):
+        scales.append(real_scale(*a))
+        return scales[-1]
+
+    def run(scale):
+        monkeypatch.setattr(fu, "agreement_scale", scale)
+        v = auto_match(ims, spacing_px=8, progress=False).only_valid()
+        x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
+        err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+        err -= err.mean()
+        z_sig = v.sigma_px * S_UM * np.cos(t0) / np.sin(t1 - t0)
+        return np.sqrt(np.mean(err ** 2)), np.mean(np.abs(err) < 2 * z_sig)
+
+    run(spy)
+    assert scales == [1.0]                                  # the map as it is: agrees
+    monkeypatch.setattr(va, "variational_parallax", noisy)
+    scaled = run(spy)
+    taken = run(lambda *a: 1.0)
+    assert scales[-1] > 1.8, scales
+    assert scaled[0] < 0.85 * taken[0], (scaled, taken)
+    assert scaled[1] >= 0.85 > taken[1], (scaled, taken)
+
+
 def test_variational_stage_takes_its_map_parameters(monkeypatch):
     """``variational_params`` reaches stage 9's maps (recorded in ``params``); anything but a
     ``VariationalParams`` is refused with a message naming it."""
