@@ -51,7 +51,8 @@ class ProfileTool:
         self.points = []
         self.profile = None
         self.fig, (self.ax_map, self.ax_profile) = plt.subplots(
-            1, 2, figsize=figsize, gridspec_kw={"width_ratios": [1.1, 1]})
+            1, 2, figsize=figsize, gridspec_kw={"width_ratios": [1.1, 1]},
+            constrained_layout=True)      # the map's colour bar label clear of the profile
         # the map's axes are in µm; clicks come in µm and the end points are kept in pixels
         plots.show_height_map(self.z_um, ax=self.ax_map, pixel_size_um=self.pixel_size_um,
                               title="click two points", max_px=max_px)
