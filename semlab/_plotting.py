@@ -44,6 +44,13 @@ def height_unit(z_um):
     return ("nm", 1000.0) if z.size == 0 or z.max() < 1.0 else ("µm", 1.0)
 
 
+def _block(shape, max_px):
+    """Block size bringing the larger side to at most ``max_px``, but never more than the
+    smaller side (a long strip keeps at least one block across)."""
+    k = max(1, int(np.ceil(max(shape[:2]) / float(max_px))))
+    return max(1, min(k, min(shape[:2])))
+
+
 def downsample(img, max_px):
     """Block-mean an image so that its larger side is at most ``max_px`` pixels.
 
@@ -55,7 +62,7 @@ def downsample(img, max_px):
         ``k i .. k i + k - 1`` and columns ``k j .. k j + k - 1`` of ``img``.
     """
     img = np.asarray(img, np.float32)
-    k = max(1, int(np.ceil(max(img.shape[:2]) / float(max_px))))
+    k = _block(img.shape, max_px)
     if k == 1:
         return img, 1
     h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
@@ -75,7 +82,7 @@ def downsample_map(a, max_px):
         Block size, as in :func:`downsample`.
     """
     a = np.asarray(a)
-    k = max(1, int(np.ceil(max(a.shape[:2]) / float(max_px))))
+    k = _block(a.shape, max_px)
     if k == 1:
         return a.astype(np.float32, copy=False), 1
     h, w = (a.shape[0] // k) * k, (a.shape[1] // k) * k

@@ -53,6 +53,10 @@ def test_downsample_map_averages_the_measured_pixels_of_each_block():
     assert small[2, 3] == pytest.approx(z[4:6, 6:8].mean())
     same, k = plots.downsample_map(z, 8)
     assert k == 1 and np.array_equal(same, z, equal_nan=True)
+    # a long strip keeps one block across instead of vanishing
+    strip, k = plots.downsample_map(np.ones((3000, 10)), 100)
+    assert k == 10 and strip.shape == (300, 1)
+    assert plots.downsample(np.ones((10, 3000)), 100)[0].shape == (1, 300)
 
 
 def test_large_maps_are_shown_from_block_means_on_the_full_maps_axes():
