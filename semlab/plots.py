@@ -30,7 +30,8 @@ __all__ = [
 ]
 
 
-def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels=None, **kw):
+def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels=None,
+               max_px=1024, **kw):
     """Show an SEM image with axes in pixels (and a µm scale bar when the pixel size is known).
 
     Parameters
@@ -39,12 +40,16 @@ def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels
     pixel_size_um : float, optional
     points : (N, 2) array of (x, y) pixels, optional
         Drawn as markers.
+    max_px : int
+        An image larger than this is drawn from block means (:func:`downsample`) on the full
+        image's pixel axes.
     """
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
     vmin, vmax = display_range(img)
-    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+    small, k = downsample(img, max_px)
+    _show_map(ax, small, k, cmap="gray", vmin=vmin, vmax=vmax)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     if title:

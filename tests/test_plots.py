@@ -82,6 +82,13 @@ def test_large_maps_are_shown_from_block_means_on_the_full_maps_axes():
     img = rng.random((3000, 1200))
     ax = plots.show_height_points(img, [[10, 10]], [0.01], 0.03, max_px=1000)
     assert max(ax.images[0].get_array().shape) <= 1000
+    for ax in (plots.show_image(img, max_px=1000),
+               plots.show_reference_surface(img, [[10, 10], [900, 2500]], [0.0, 0.01],
+                                            [True, True])):
+        assert max(ax.images[0].get_array().shape) <= 1000
+        assert ax.images[0].get_extent() == pytest.approx((-0.5, 1199.5, 2999.5, -0.5))
+    small = plots.show_image(img[:100, :100])                 # small images as they are
+    assert small.images[0].get_array().shape == (100, 100)
 
 
 def test_show_height_points_um_axes_nm_colourbar_and_contrasting_edges():
