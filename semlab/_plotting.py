@@ -1,6 +1,6 @@
 """Shared pieces of the figure modules (:mod:`semlab.plots`, :mod:`semlab.plots_motion`):
 pyplot on demand, grey-level limits, the report font size and colour codes, the height unit,
-image and map downsampling, shared histogram bins."""
+image and map downsampling (NaN-aware), shared histogram bins."""
 
 from __future__ import annotations
 
@@ -52,7 +52,10 @@ def _block(shape, max_px):
 
 
 def downsample(img, max_px):
-    """Block-mean an image so that its larger side is at most ``max_px`` pixels.
+    """Block-mean an image or a map so that its larger side is at most ``max_px`` pixels.
+
+    A block is the mean of its *finite* pixels, NaN only where none of them is (a sparsely
+    measured height map stays visible; an image has no NaN).
 
     Returns
     -------
@@ -61,32 +64,12 @@ def downsample(img, max_px):
         Block size (1 = unchanged); pixel ``(i, j)`` of ``small`` covers rows
         ``k i .. k i + k - 1`` and columns ``k j .. k j + k - 1`` of ``img``.
     """
-    img = np.asarray(img, np.float32)
+    img = np.asarray(img)
     k = _block(img.shape, max_px)
     if k == 1:
-        return img, 1
+        return img.astype(np.float32, copy=False), 1
     h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
-    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)), k
-
-
-def downsample_map(a, max_px):
-    """Block-mean a map with NaN holes so that its larger side is at most ``max_px`` pixels.
-
-    Unlike :func:`downsample`, a block is the mean of its *finite* pixels, and NaN only where
-    none of them is (a sparsely measured map stays visible).
-
-    Returns
-    -------
-    small : (h, w) float32 array
-    k : int
-        Block size, as in :func:`downsample`.
-    """
-    a = np.asarray(a)
-    k = _block(a.shape, max_px)
-    if k == 1:
-        return a.astype(np.float32, copy=False), 1
-    h, w = (a.shape[0] // k) * k, (a.shape[1] // k) * k
-    blocks = a[:h, :w].reshape(h // k, k, w // k, k)
+    blocks = img[:h, :w].reshape(h // k, k, w // k, k)
     finite = np.isfinite(blocks)
     n = finite.sum(axis=(1, 3))
     total = np.where(finite, blocks, 0).sum(axis=(1, 3), dtype=np.float64)
@@ -110,12 +93,8 @@ def _show_gray(ax, img, pixel_size_um=None, max_px=None):
     k = 1
     if max_px:
         img, k = downsample(img, max_px)
+    _show_map(ax, img, k, pixel_size_um, cmap="gray", vmin=vmin, vmax=vmax)
     s = pixel_size_um or 1.0
-    h, w = img.shape[:2]
-    # a downsampled image is smoothed on screen (its pixels are not the data's anyway)
-    ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax,
-              interpolation="bilinear" if k > 1 else "nearest",
-              extent=(-0.5 * s, (w * k - 0.5) * s, (h * k - 0.5) * s, -0.5 * s))
     unit = "µm" if pixel_size_um else "px"
     ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
     ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)

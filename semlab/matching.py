@@ -861,8 +861,7 @@ def _variational_map(view0, view1, seeds, params, tiling=None):
 
     t = tiling or DEFAULT_TILING
     prm = params or VariationalParams()
-    shape = np.shape(view0)
-    if shape[0] * shape[1] <= t.map_min_pixels:
+    if not t.tiles_map(np.shape(view0)):
         return variational_parallax(view0, view1, seeds=seeds, params=prm)
     return tiled_parallax(view0, view1, seeds=seeds, params=prm, method=variational_parallax,
                           tiling=t, scheduler=INLINE, progress=False)

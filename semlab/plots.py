@@ -3,7 +3,7 @@
 Functions take numpy arrays (and an optional matplotlib ``Axes``) and return the figure or
 axes they drew on, so notebooks stay thin. Heights below 1 µm are shown in nm
 (:func:`height_unit`); images and maps in report figures are downsampled to the size they
-are seen at (:func:`downsample`, :func:`downsample_map`), which keeps executed notebooks and
+are seen at (:func:`downsample`), which keeps executed notebooks and
 the notebook kernel small (a 3072×4096 map is shown from a 1024 px copy).
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._plotting import (FLAG_COLOURS, REPORT_FONTSIZE, SEED_COLOURS, _plt, _show_gray,
-                        _show_map, display_range, downsample, downsample_map, height_unit,
+                        _show_map, display_range, downsample, height_unit,
                         shared_bins)
 from .plots_motion import (displacement_histograms, lateral_vs_depth, plot_fb_errors,
                            principal_directions, strain_history, strain_maps, tracks_overview)
@@ -20,7 +20,7 @@ from .plots_motion import (displacement_histograms, lateral_vs_depth, plot_fb_er
 __all__ = [
     "display_range", "show_image", "add_scale_bar", "show_images", "show_height_map",
     "show_line_families", "show_epipolar_lines", "plot_stability", "show_static",
-    "height_unit", "downsample", "downsample_map", "show_height_points", "plot_height_projections",
+    "height_unit", "downsample", "show_height_points", "plot_height_projections",
     "plot_point_profile", "trend_sentence", "tracks_overview", "plot_fb_errors", "shared_bins",
     "displacement_histograms", "show_picked_points", "show_line_families_views",
     "stability_figure", "lateral_vs_depth", "strain_maps", "principal_directions",
@@ -47,9 +47,7 @@ def show_image(img, ax=None, title=None, pixel_size_um=None, points=None, labels
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
-    vmin, vmax = display_range(img)
-    small, k = downsample(img, max_px)
-    _show_map(ax, small, k, cmap="gray", vmin=vmin, vmax=vmax)
+    _show_gray(ax, img, max_px=max_px)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     if title:
@@ -107,7 +105,7 @@ def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="R
 
     Axes in µm when ``pixel_size_um`` is given (else pixels); heights in nm where every
     ``|z|`` is below 1 µm (:func:`height_unit`). A map larger than ``max_px`` is shown as
-    block means (:func:`downsample_map`) on the full map's axes.
+    block means (:func:`downsample`) on the full map's axes.
 
     Parameters
     ----------
@@ -119,7 +117,7 @@ def show_height_map(z_um, ax=None, pixel_size_um=None, title="height z", cmap="R
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
     unit, f = height_unit(z_um)
-    z, k = downsample_map(z_um, max_px)
+    z, k = downsample(z_um, max_px)
     z = z * np.float32(f)
     finite = np.abs(z[np.isfinite(z)])
     lim = float(np.percentile(finite, 99.5)) if finite.size else 1.0
@@ -433,7 +431,7 @@ def show_heightmap_panels(z_um, sigma_um, pixel_size_um=None, size=3.6, max_px=1
     plt = _plt()
     fig, axs = plt.subplots(1, 3, figsize=(3 * size + 1.5, size * 0.8), constrained_layout=True)
     show_height_map(z_um, ax=axs[0], pixel_size_um=pixel_size_um, max_px=max_px)
-    sg, k = downsample_map(sigma_um, max_px)
+    sg, k = downsample(sigma_um, max_px)
     sg = sg * np.float32(1e3)
     hi = float(np.percentile(sg[np.isfinite(sg)], 99)) if np.isfinite(sg).any() else 1.0
     im = _show_map(axs[1], sg, k, pixel_size_um, cmap="magma", vmin=0, vmax=hi or 1.0)
@@ -455,13 +453,13 @@ def show_hillshade(z_um, pixel_size_um, ax=None, azimuth_deg=315.0, altitude_deg
                    z_factor=5.0, title=None, max_px=1024):
     """Hill-shaded relief of a height map (heights exaggerated ``z_factor`` times);
     not-measured pixels in red. A map larger than ``max_px`` is shaded from its block means
-    (:func:`downsample_map`, slopes over the blocks' spacing), which is all a figure shows."""
+    (:func:`downsample`, slopes over the blocks' spacing), which is all a figure shows."""
     from .heightmap import hillshade
 
     plt = _plt()
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 4.5))
-    z, k = downsample_map(z_um, max_px)
+    z, k = downsample(z_um, max_px)
     hs = hillshade(z, pixel_size_um * k, azimuth_deg, altitude_deg, z_factor)
     rgb = np.dstack([hs, hs, hs])
     rgb[~np.isfinite(hs)] = (0.8, 0.1, 0.1)

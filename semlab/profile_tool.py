@@ -29,7 +29,7 @@ class ProfileTool:
     width_px : float
         Width of the averaged strip (see :func:`semlab.metrology.profile_between`).
     max_px : int
-        Largest side of the map as shown (:func:`semlab.plots.downsample_map`); the profile
+        Largest side of the map as shown (:func:`semlab.plots.downsample`); the profile
         is always sampled from the full map.
 
     Attributes

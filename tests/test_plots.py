@@ -42,19 +42,19 @@ def test_downsample_block_means():
     assert k == 1 and same.shape == img.shape
 
 
-def test_downsample_map_averages_the_measured_pixels_of_each_block():
+def test_downsample_averages_the_measured_pixels_of_each_block():
     z = np.arange(6 * 8, dtype=np.float32).reshape(6, 8)
     z[0, 0] = np.nan                       # a hole: its block is the mean of the other three
     z[2:4, 2:4] = np.nan                   # a block with nothing measured stays NaN
-    small, k = plots.downsample_map(z, 4)
+    small, k = plots.downsample(z, 4)
     assert k == 2 and small.shape == (3, 4) and small.dtype == np.float32
     assert small[0, 0] == pytest.approx(np.nanmean(z[:2, :2]))
     assert np.isnan(small[1, 1]) and np.isfinite(np.delete(small.ravel(), 5)).all()
     assert small[2, 3] == pytest.approx(z[4:6, 6:8].mean())
-    same, k = plots.downsample_map(z, 8)
+    same, k = plots.downsample(z, 8)
     assert k == 1 and np.array_equal(same, z, equal_nan=True)
     # a long strip keeps one block across instead of vanishing
-    strip, k = plots.downsample_map(np.ones((3000, 10)), 100)
+    strip, k = plots.downsample(np.ones((3000, 10)), 100)
     assert k == 10 and strip.shape == (300, 1)
     assert plots.downsample(np.ones((10, 3000)), 100)[0].shape == (1, 300)
 
