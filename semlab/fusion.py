@@ -15,7 +15,9 @@ At the sparse points of automatic matching the two estimates are combined instea
 (:func:`inverse_variance`, stage 9 of :func:`semlab.matching.auto_match`): there the
 average beats the subset matches on fifteen of the sixteen accuracy-matrix cells measured
 (docs/accuracy.md, "Stage 9: the subset matches averaged with the variational map at
-the points").
+the points"). There the map's σ is scaled where its errors are larger than it says: by
+:func:`held_out_scale` (how well the average predicts a third view) when there is one, by
+:func:`agreement_scale` (how the two disagree) when there is not.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from .errors import SemlabError
 
 __all__ = ["min_sigma_choice", "fuse_heightmaps", "inverse_variance", "sample_parallax",
-           "agreement_scale"]
+           "agreement_scale", "held_out_scale"]
 
 
 def min_sigma_choice(z_a, sigma_a, valid_a, z_b, sigma_b, valid_b):
@@ -192,6 +194,58 @@ def agreement_scale(a, sigma_a, b, sigma_b):
     from scipy.optimize import brentq
 
     return float(brentq(excess, 1.0, hi, xtol=1e-4))
+
+
+def held_out_scale(a, sigma_a, b, sigma_b, c):
+    """How much larger ``sigma_b`` must be for the average of ``a`` and ``b`` to agree best
+    with ``c``, an estimate of the same quantities whose errors are their own.
+
+    :func:`agreement_scale` compares ``a`` with ``b`` only, so it takes ``σ_a`` as calibrated:
+    where ``a``'s σ is conservative, ``b``'s excess error hides in ``a``'s unused variance
+    (two estimates cannot separate two variance components). A third estimate can: the scale
+    here is the ``k ≥ 1`` (``inf``: ``b`` unused) whose inverse-variance average
+    (:func:`inverse_variance` with ``k σ_b``) is closest to ``c`` in the robust standard
+    deviation (1.4826 × the median absolute deviation) of ``average − c`` — the weight that
+    predicts held-out data best, whatever ``a``'s and ``b``'s σ claim. ``c``'s own error adds
+    the same variance for every ``k``, so it does not move the choice. Searched on
+    ``k = 2^(i/4)``, ``i = 0 … 40`` (1 to 1024), and ``inf``.
+
+    Parameters
+    ----------
+    a, b : (N,) arrays
+        The two estimates to average (e.g. a point's x position in one view from its subset
+        match and from the variational map), pixels.
+    sigma_a, sigma_b : (N,) arrays
+        Their 1σ.
+    c : (N, L) array
+        ``L`` held-out estimates of the same ``N`` quantities (e.g. the x position predicted
+        from another view's match), NaN where not available. Each column is compared after
+        removing its median difference.
+
+    Returns
+    -------
+    float
+        ``k``; 1.0 with fewer than 8 rows where ``a``, ``b`` (and their σ) and a column of
+        ``c`` are all usable.
+    """
+    a, sa, b, sb = (np.asarray(v, float).ravel() for v in (a, sigma_a, b, sigma_b))
+    c = np.asarray(c, float).reshape(len(a), -1)
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sb)
+              & (sa > 0) & (sb > 0))
+    cols = [(ok & np.isfinite(c[:, i])) for i in range(c.shape[1])]
+    if sum(int(m.sum()) for m in cols) < 8:
+        return 1.0
+
+    def spread(k):
+        fused = inverse_variance(a, sa, b, k * sb)[0]
+        r = np.concatenate([fused[m] - c[m, i] - np.median(fused[m] - c[m, i])
+                            for i, m in enumerate(cols) if m.any()])
+        return 1.4826 * np.median(np.abs(r))
+
+    ks = [2.0 ** (i / 4) for i in range(41)] + [np.inf]
+    loss = [spread(k) for k in ks]
+    return float(ks[int(np.argmin(loss))])
 
 
 def sample_parallax(dense, pts_px):

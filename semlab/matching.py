@@ -191,7 +191,9 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        variational parallax map (:func:`semlab.variational.variational_parallax`, seeded by
        the accepted points) is sampled at the accepted points, and each point's position is
        the inverse-variance average of its subset match and that estimate
-       (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's). The two average
+       (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's), the map's σ
+       scaled by the held-out views (three or more: :func:`semlab.fusion.held_out_scale`)
+       or by its agreement with the subsets (two views). The two average
        the relief differently (the subset over its square, the variational map through a
        per-pixel smoothness prior), so their errors are partly independent. Where the two
        disagree by more than 3σ (the map misses a tall object's parallax) the subset match
@@ -339,10 +341,13 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         of the errors within 1σ and 91–97 % within 2σ. It costs one variational map per view
         pair: ``auto_match`` takes 3–5× as long (single thread, 2026-12-04: the 384×512 demo
         pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). The map's σ is
-        scaled by its agreement with the subset matches (:func:`semlab.fusion.agreement_scale`;
-        1 on every matrix cell, 1.44 on the real ``pollen_pot1`` view 1, where the stage
-        still makes the pair-to-pair agreement worse: docs/accuracy.md, "Stage 9 on real
-        data without truth"). False: the subset matches alone.
+        scaled (k ≥ 1): with three or more views by how well the average predicts each
+        other view's subset matches (:func:`semlab.fusion.held_out_scale`), with two by its
+        agreement with the subset matches (:func:`semlab.fusion.agreement_scale`; 1 on every
+        matrix cell). On the real ``pollen_pot1`` view 1 the held-out scale is 13.5 (the map
+        nearly unused) where the agreement scale said 1.44 and the stage made the
+        pair-to-pair agreement worse (docs/accuracy.md, "Stage 9 on real data without
+        truth"). False: the subset matches alone.
     variational_params : semlab.variational.VariationalParams, optional
         Parameters of stage 9's maps (default ``VariationalParams()``); recorded with the
         others (``asdict`` gives its fields).
@@ -800,14 +805,16 @@ def _filter_multiview(st):
 def _stage_variational(st):
     """Stage 9: the points' positions in each view whose match there passed its tests,
     averaged with the variational parallax map of that view pair (seeded by them), by
-    inverse variance, the map's σ scaled by its agreement with the subset matches
-    (:func:`semlab.fusion.agreement_scale`); their 1σ become the average's
-    (``st.fused_sig``)."""
+    inverse variance, the map's σ scaled by how well the average predicts the other views
+    (:func:`semlab.fusion.held_out_scale`, with three or more views) or else by its agreement
+    with the subset matches (:func:`semlab.fusion.agreement_scale`); their 1σ become the
+    average's (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
     from . import fusion
 
     sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
+    subsets = st.out.copy()     # the subset matches: the held-out estimates of every view
     for j in range(st.v):
         # views matched with the dense prior (a tall object: hundreds of pixels of curved
         # parallax) keep their subsets: the map, refined around the flow, misses that
@@ -831,14 +838,53 @@ def _stage_variational(st):
         with np.errstate(invalid="ignore"):
             off = np.abs(xy1[:, 0] - st.out[idx, j, 0]) > 3 * np.hypot(sig[idx, j], s1)
         xy1[off] = np.nan
-        # the map's σ as its agreement with the subset matches says (a variance component
-        # from the data: 1 where it agrees as predicted, > 1 where its errors are larger
-        # than its σ, e.g. relief its prior flattens); the subsets' σ is calibrated
-        k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1)
+        # the map's σ scaled (k ≥ 1) where its errors are larger than it says, e.g. relief its
+        # prior flattens: with another view, by how well the average predicts that view's
+        # subset matches (held out: their errors are their own); with two views, by the
+        # map's agreement with the subset matches, whose σ is then taken as calibrated
+        held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
+        k = (fusion.held_out_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1, held)
+             if held is not None else
+             fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1))
         fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1)
         st.out[idx, j] = fused
         used = wv > 0
         st.fused_sig[idx[used], j] = s_f[used]
+
+
+def _held_out_positions(pts, view_valid, ref, j, idx):
+    """View ``j``'s x positions of the points ``idx`` predicted from each other view's matches.
+
+    Under affine cameras tilted about an axis near the image y axis, a point's x in view
+    ``j`` is a linear function of its ``(x, y)`` in the reference view and its x in any
+    other view ``l`` (:func:`semlab.match_filters._multiview_residual`'s rank-2 model):
+    fitted per view ``l`` by least squares on the points valid in the three views (three
+    rounds, dropping residuals beyond 4 × 1.4826 MAD), evaluated with ``l``'s matches.
+
+    Returns
+    -------
+    (len(idx), L) array or None
+        One column per other view with at least 8 such points, NaN where the point is not
+        valid there; None without such a view.
+    """
+    cols = []
+    for l in range(pts.shape[1]):
+        if l in (ref, j):
+            continue
+        X = np.column_stack([pts[idx, ref, 0], pts[idx, ref, 1], pts[idx, l, 0],
+                             np.ones(len(idx))])
+        y = pts[idx, j, 0]
+        use = view_valid[idx, l] & np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        if use.sum() < 8:
+            continue
+        fit = use.copy()
+        for _ in range(3):
+            beta = np.linalg.lstsq(X[fit], y[fit], rcond=None)[0]
+            r = y - X @ beta
+            mad = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
+            fit = use & (np.abs(r - np.median(r[use])) <= 4 * mad) if mad > 0 else use
+        cols.append(np.where(use, X @ beta, np.nan))
+    return np.column_stack(cols) if cols else None
 
 
 def _variational_map(view0, view1, seeds, params, tiling=None):

@@ -147,3 +147,34 @@ def test_agreement_scale_is_the_missing_variance_of_the_second_estimate():
     sb_bad[-5:] = np.nan
     assert fusion.agreement_scale(a, sa, wild, sb_bad) == pytest.approx(3.0, rel=0.25)
     assert fusion.agreement_scale(a[:5], sa[:5], b[:5], sb[:5]) == 1.0   # too few to tell
+
+
+def test_held_out_scale_sees_the_excess_error_that_conservative_sigma_hides():
+    """``a``'s σ three times its errors, ``b``'s errors 3× its σ: compared with each other,
+    ``b``'s excess partly hides in ``a``'s unused variance (agreement scale ~2.5, and the
+    average is worse than ``a`` alone), but an independent third estimate shows the average
+    is best with ``b`` nearly unused (held-out k ≫ 1), and it is; where ``b`` is better than
+    it says, the held-out k is the optimum's (1.5 here: the ratio of the two σ's
+    overstatements) and keeps the average's gain."""
+    rng = np.random.default_rng(4)
+    n = 4000
+    truth = rng.normal(0, 5, n)
+    ea, sb = 0.05, rng.uniform(0.05, 0.12, n)
+    sa = np.full(n, 3 * ea)                         # conservative: three times the error
+    a = truth + ea * rng.standard_normal(n)
+    c = (truth + 0.08 * rng.standard_normal(n) + 1.0)[:, None]   # its own error and offset
+    bad = truth + 3 * sb * rng.standard_normal(n)
+    err = lambda x: np.sqrt(np.mean((x - truth) ** 2))              # noqa: E731
+    avg = lambda b, k: fusion.inverse_variance(a, sa, b, k * sb)[0]  # noqa: E731
+    ka = fusion.agreement_scale(a, sa, bad, sb)
+    k = fusion.held_out_scale(a, sa, bad, sb, c)
+    assert k > 2 * ka, (k, ka)
+    assert err(avg(bad, k)) < 0.75 * err(avg(bad, ka)), (err(avg(bad, k)), err(avg(bad, ka)))
+    assert err(avg(bad, ka)) > err(a)               # the agreement scale's average loses
+    good = truth + 0.5 * sb * rng.standard_normal(n)                 # better than it says
+    kg = fusion.held_out_scale(a, sa, good, sb, c)
+    assert 1.0 <= kg < 2.0 and err(avg(good, kg)) < 0.9 * err(a), (kg, err(avg(good, kg)), err(a))
+    # held-out estimates missing on most rows, and too few rows: the usable ones, or 1
+    c_sparse = np.where(rng.random((n, 1)) < 0.2, c, np.nan)
+    assert fusion.held_out_scale(a, sa, bad, sb, c_sparse) > 2 * ka
+    assert fusion.held_out_scale(a[:5], sa[:5], bad[:5], sb[:5], c[:5]) == 1.0

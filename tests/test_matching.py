@@ -696,6 +696,54 @@ def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
     assert scaled[1] >= 0.85 > taken[1], (scaled, taken)
 
 
+def test_variational_stage_with_three_views_weighs_the_map_by_the_held_out_view(monkeypatch):
+    """With a third view, stage 9 scales each map's σ by how well the average predicts the
+    other view's subset matches (fusion.held_out_scale), not by the map's agreement with the
+    subsets alone: an honest map keeps a small scale and lowers the height error; a map whose
+    errors are 3× its σ (noise added) is left out (scale ≥ 8), and the heights are those of
+    the subsets alone."""
+    from dataclasses import replace
+
+    import semlab.fusion as fu
+    import semlab.variational as va
+
+    tilts = (-5.0, 5.0, 0.0)
+    sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)
+    ims = [sc.render(t, noise=0.3, seed=i + 1) for i, t in enumerate(tilts)]
+    real_map, real_held = va.variational_parallax, fu.held_out_scale
+    scales = []
+
+    def noisy(*a, **k):
+        dm = real_map(*a, **k)
+        e = np.random.default_rng(5).standard_normal(dm.x1_px.shape)
+        return replace(dm, x1_px=dm.x1_px + 3 * dm.sigma_px * e)
+
+    def spy(*a):
+        scales.append(real_held(*a))
+        return scales[-1]
+
+    def not_called(*a):
+        raise AssertionError("agreement_scale used with three views")
+
+    monkeypatch.setattr(fu, "held_out_scale", spy)
+    monkeypatch.setattr(fu, "agreement_scale", not_called)
+
+    def rms(**kw):
+        v = auto_match(ims, spacing_px=8, progress=False, **kw).only_valid()
+        x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], tilts[0])
+        err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
+        return np.sqrt(np.mean((err - err.mean()) ** 2))
+
+    off = rms(variational_fusion=False)
+    honest = rms()
+    assert len(scales) == 2 and scales[0] < 3, scales           # views 1 and 2, one each
+    assert honest < 0.9 * off, (honest, off)
+    monkeypatch.setattr(va, "variational_parallax", noisy)
+    noisy_rms = rms()
+    assert min(scales[2:]) >= 8, scales
+    assert noisy_rms <= 1.02 * off, (noisy_rms, off)
+
+
 def test_variational_stage_takes_its_map_parameters(monkeypatch):
     """``variational_params`` reaches stage 9's maps (recorded in ``params``); anything but a
     ``VariationalParams`` is refused with a message naming it."""
