@@ -1,7 +1,7 @@
 """Stereo accuracy benchmark: heights against ground truth, tilt recovery, vanishing points,
 and the real quartz tilt series.
 
-Run:  python benchmarks/stereo_accuracy.py [--seeds 3] [--quick]
+Run:  python benchmarks/stereo_accuracy.py [--seeds 3] [--quick | --real-only]
 
 Prints markdown tables (the stereo table of docs/accuracy.md comes from this script).
 Synthetic scenes are made by semlab.synth at 384×512 px, 0.03 µm/px, with 50 hand-click-like correspondences
@@ -158,49 +158,76 @@ def bench_quartz():
     t0 = time.perf_counter()
     # as semlab.pipeline.choose_tilts: square subsets, the middle view as reference
     m = matching.auto_match(ims, ref_view=1, band_aware=False, progress=False)
-    pts = m.pts[m.valid]
+    pts, vsig = m.pts[m.valid], m.view_sigma_px[m.valid]
     est = reconstruct.estimate_tilts(pts, None, progress=False)
-    # heights from each pair with the estimated tilts, compared on the common points (px units)
-    z = []
+    # heights from each pair with the estimated tilts, compared on the common points (px
+    # units), and their predicted 1σ: the reference view 1 is exact, the other view's x error
+    # is its matching σ (semlab.surface.height_sigma for two views)
+    z, zs = [], []
     for a, b in ((0, 1), (1, 2)):
         r = reconstruct.heights_from_tilts(pts[:, [a, b]], est.tilt_deg[[a, b]], 1.0)
         z.append(r.xyz_um[:, 2])
+        o = a if b == 1 else b
+        zs.append(vsig[:, o] * np.cos(np.deg2rad(est.tilt_deg[1]))
+                  / abs(np.sin(np.deg2rad(est.tilt_deg[b] - est.tilt_deg[a]))))
     diff = validation.height_errors(z[0], z[1], pts[:, 1])
     return {"n": len(pts), "tilt": est.tilt_deg, "sigma": est.tilt_sigma_deg,
             "z_range_px": float(np.ptp(z[1])), "pair_rms_px": diff["rmse_um"],
-            "time_s": time.perf_counter() - t0, "residual_px": est.residual_px}
+            "time_s": time.perf_counter() - t0, "residual_px": est.residual_px,
+            "bars": _pair_error_bars(diff["err_um"], np.hypot(*zs), pts[:, 1])}
+
+
+def _pair_error_bars(dz, sd, xy, smooth_px=60.0, apart_px=24.0):
+    """The pair difference against its predicted σ, whole and split in two parts: its median
+    over ``smooth_px`` around each point (smooth: camera model, tilt geometry) and the rest
+    (local: matching); and the local spread measured between points ``apart_px``
+    apart (independent subsets) against the σ."""
+    from scipy.spatial import cKDTree
+
+    def rsd(v):
+        return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+    tree = cKDTree(xy)
+    smooth = np.array([np.median(dz[i]) for i in tree.query_ball_point(xy, smooth_px)])
+    pr = tree.query_pairs(apart_px, output_type="ndarray")
+    far = np.hypot(*(xy[pr[:, 1]] - xy[pr[:, 0]]).T) > apart_px / 2
+    return {"rsd_px": rsd(dz), "sigma_px": float(np.median(sd)), "u": dz / sd,
+            "smooth_rsd_px": rsd(smooth), "local_u": (dz - smooth) / sd,
+            "apart_rsd_px": rsd(dz[pr[far, 1]] - dz[pr[far, 0]]) / np.sqrt(2)}
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="one seed, skip the real data")
+    ap.add_argument("--real-only", action="store_true", help="the real quartz series only")
     args = ap.parse_args()
     seeds = range(1 if args.quick else args.seeds)
-    with tempfile.TemporaryDirectory() as tmp:
-        print("## Heights, two views (RMSE in nm after plane removal; N points)\n")
-        print("| tilts | seed | flat surface | raw clicks (paper) | refined clicks | automatic | eight-point F on raw clicks |")
-        print("|---|---|---|---|---|---|---|")
-        for tilts in ((-5.0, 5.0), (0.0, 8.0)):
-            for r in bench_two_view(tmp, seeds, tilts):
-                cells = [f"{r[m][0]:.1f} (N={r[m][1]}, {r[m][2]:.1f} s; within 1σ/2σ: "
-                         f"{r[m][3][0]:.0%}/{r[m][3][1]:.0%})" for m in ("raw", "refined", "auto")]
-                print(f"| {tilts[0]:+g}/{tilts[1]:+g}° | {r['seed']} | {r['flat_nm']:.1f} | " + " | ".join(cells)
-                      + f" | {r['F8']} |")
-        print("\n## Three views (-5°, 0°, +5°), tilts unknown (automatic matching)\n")
-        print("| seed | estimated tilts (deg) | 1σ (deg) | max error of tilt differences | max absolute error (level-plane convention) | height RMSE (nm) | N | noise floor: same points, exact + σ noise (RMS / 95 %) |")
-        print("|---|---|---|---|---|---|---|---|")
-        for r in bench_three_view(tmp, seeds):
-            f = r["floor"]
-            print(f"| {r['seed']} | {np.round(r['tilt'], 3).tolist()} | {np.round(r['sigma'], 3).tolist()} | "
-                  f"{r['rel_err']:.3f}° | {r['abs_err']:.3f}° | {r['rmse_nm']:.1f} | {r['n']} | "
-                  f"{f['rms']:.3f}° / {f['p95']:.3f}° (σ = {f['sigma_px']:.3f} px) |")
-        f_err, r_err, tilt = bench_vanishing(tmp, range(10 if not args.quick else 2))
-        print("\n## Vanishing points, calibration block, 1 px line noise\n")
-        print("| trials | focal error median / max | relative rotation error median / max |")
-        print("|---|---|---|")
-        print(f"| {len(f_err)} | {np.median(f_err):.2f} % / {f_err.max():.2f} % | "
-              f"{np.median(r_err):.3f}° / {r_err.max():.3f}° |")
+    if not args.real_only:
+        with tempfile.TemporaryDirectory() as tmp:
+            print("## Heights, two views (RMSE in nm after plane removal; N points)\n")
+            print("| tilts | seed | flat surface | raw clicks (paper) | refined clicks | automatic | eight-point F on raw clicks |")
+            print("|---|---|---|---|---|---|---|")
+            for tilts in ((-5.0, 5.0), (0.0, 8.0)):
+                for r in bench_two_view(tmp, seeds, tilts):
+                    cells = [f"{r[m][0]:.1f} (N={r[m][1]}, {r[m][2]:.1f} s; within 1σ/2σ: "
+                             f"{r[m][3][0]:.0%}/{r[m][3][1]:.0%})" for m in ("raw", "refined", "auto")]
+                    print(f"| {tilts[0]:+g}/{tilts[1]:+g}° | {r['seed']} | {r['flat_nm']:.1f} | " + " | ".join(cells)
+                          + f" | {r['F8']} |")
+            print("\n## Three views (-5°, 0°, +5°), tilts unknown (automatic matching)\n")
+            print("| seed | estimated tilts (deg) | 1σ (deg) | max error of tilt differences | max absolute error (level-plane convention) | height RMSE (nm) | N | noise floor: same points, exact + σ noise (RMS / 95 %) |")
+            print("|---|---|---|---|---|---|---|---|")
+            for r in bench_three_view(tmp, seeds):
+                f = r["floor"]
+                print(f"| {r['seed']} | {np.round(r['tilt'], 3).tolist()} | {np.round(r['sigma'], 3).tolist()} | "
+                      f"{r['rel_err']:.3f}° | {r['abs_err']:.3f}° | {r['rmse_nm']:.1f} | {r['n']} | "
+                      f"{f['rms']:.3f}° / {f['p95']:.3f}° (σ = {f['sigma_px']:.3f} px) |")
+            f_err, r_err, tilt = bench_vanishing(tmp, range(10 if not args.quick else 2))
+            print("\n## Vanishing points, calibration block, 1 px line noise\n")
+            print("| trials | focal error median / max | relative rotation error median / max |")
+            print("|---|---|---|")
+            print(f"| {len(f_err)} | {np.median(f_err):.2f} % / {f_err.max():.2f} % | "
+                  f"{np.median(r_err):.3f}° / {r_err.max():.3f}° |")
     if not args.quick:
         q = bench_quartz()
         print("\n## Real data: quartz tilt series (three views, tilts and pixel size unknown)\n")
@@ -213,6 +240,13 @@ def main():
             print(f"- rank-2 residual {q['residual_px']:.3f} px")
             print(f"- heights from pair 1-2 vs pair 2-3 (same points, estimated tilts): RMS difference "
                   f"{q['pair_rms_px']:.2f} px of height, over a height range of {q['z_range_px']:.0f} px")
+            b = q["bars"]
+            within = lambda u: f"{np.mean(np.abs(u) <= 1):.0%} / {np.mean(np.abs(u) <= 2):.0%}"  # noqa: E731
+            print(f"- its error bars: robust SD {b['rsd_px']:.2f} px against a median predicted σ "
+                  f"{b['sigma_px']:.2f} px, {within(b['u'])} within 1σ / 2σ; smooth part (median "
+                  f"over 60 px) robust SD {b['smooth_rsd_px']:.2f} px; the rest {within(b['local_u'])} "
+                  f"within 1σ / 2σ; between points 12–24 px apart (independent subsets) "
+                  f"{b['apart_rsd_px']:.2f} px per point")
 
 
 if __name__ == "__main__":
