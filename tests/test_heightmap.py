@@ -303,3 +303,26 @@ def test_heightmap_from_stereo_uses_the_matchers_noise():
         res = hm.heightmap_from_stereo(exp, stereo, roi=roi, params=params)
         np.testing.assert_allclose(res.parallax.calibration["noise_sigma"], (0.07, 0.08))
         assert any("recorded by the stereo step" in n for n in res.notes)
+
+
+def test_heightmap_keeps_its_parallax_in_float32():
+    """The map keeps the parallax it came from in float32 (half the memory of every process
+    that loads it), its heights computed before from the float64 positions."""
+    from semlab.heightmap import DenseParallax, DenseParams, HeightModel, _heights
+
+    rng = np.random.default_rng(0)
+    h, w = 40, 60
+    x1 = 3000.0 + np.arange(w)[None, :] + 0.1 * rng.standard_normal((h, w))
+    par = DenseParallax(x1_px=x1, y1_px=np.broadcast_to(np.arange(h)[:, None], (h, w)) * 1.0,
+                        sigma_px=np.full((h, w), 0.05), sigma_y_px=np.full((h, w), 0.05),
+                        valid=np.ones((h, w), bool), zncc=np.full((h, w), 0.9),
+                        roi=(3000, 0, 3000 + w, h), sigma_scale=1.0, params=DenseParams())
+    model = HeightModel(coef=(1.0, 0.0, -1.0, 0.0, 0.0))
+    m = _heights(par, model, 0.03)
+    for k in ("x1_px", "y1_px", "sigma_px", "sigma_y_px", "zncc"):
+        assert getattr(m.parallax, k).dtype == np.float32, k
+    # heights from the float64 positions: the difference x1 - x0 ~ 0.1 px exactly, not
+    # rounded to float32's 2.4e-4 px at 3000 px
+    gx, _ = par.grid()
+    np.testing.assert_allclose(m.z_um, (x1 - gx).astype(np.float32), rtol=1e-6, atol=1e-7)
+    assert np.abs(m.parallax.x1_px - x1).max() <= 2.5e-4
