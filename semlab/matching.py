@@ -857,9 +857,9 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
 
     Under affine cameras tilted about an axis near the image y axis, a point's x in view
     ``j`` is a linear function of its ``(x, y)`` in the reference view and its x in any
-    other view ``l`` (:func:`semlab.match_filters._multiview_residual`'s rank-2 model):
-    fitted per view ``l`` by least squares on the points valid in the three views (three
-    rounds, dropping residuals beyond 4 × 1.4826 MAD), evaluated with ``l``'s matches.
+    other view (:func:`semlab.match_filters._multiview_residual`'s rank-2 model):
+    fitted per other view by least squares on the points valid in the three views (three
+    rounds, dropping residuals beyond 4 × 1.4826 MAD), evaluated with that view's matches.
 
     Returns
     -------
@@ -868,13 +868,13 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
         valid there; None without such a view.
     """
     cols = []
-    for l in range(pts.shape[1]):
-        if l in (ref, j):
+    for other in range(pts.shape[1]):
+        if other in (ref, j):
             continue
-        X = np.column_stack([pts[idx, ref, 0], pts[idx, ref, 1], pts[idx, l, 0],
+        X = np.column_stack([pts[idx, ref, 0], pts[idx, ref, 1], pts[idx, other, 0],
                              np.ones(len(idx))])
         y = pts[idx, j, 0]
-        use = view_valid[idx, l] & np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        use = view_valid[idx, other] & np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         if use.sum() < 8:
             continue
         fit = use.copy()
