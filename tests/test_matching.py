@@ -650,6 +650,25 @@ def test_variational_stage_keeps_the_subset_match_where_the_map_is_off(monkeypat
             assert d.max() == 0 and np.array_equal(on.sigma_px, off.sigma_px, equal_nan=True)
 
 
+def _with_errors(real_map, factor):
+    """``real_map`` (a variational map function) with errors of ``factor`` × its σ added."""
+    from dataclasses import replace
+
+    def noisy(*a, **k):
+        dm = real_map(*a, **k)
+        e = np.random.default_rng(5).standard_normal(dm.x1_px.shape)
+        return replace(dm, x1_px=dm.x1_px + factor * dm.sigma_px * e)
+    return noisy
+
+
+def _recorder(fn, log):
+    """``fn`` that appends each result to ``log``."""
+    def spy(*a):
+        log.append(fn(*a))
+        return log[-1]
+    return spy
+
+
 def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
     """Stage 9 weighs the map by its agreement with the subset matches, not by its σ alone:
     a map whose errors are 3× its σ (noise added to it here) is down-weighted by the
@@ -657,8 +676,6 @@ def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
     the subsets' accuracy and their error bars hold; with the map's σ taken as it says, the
     average is worse than the subsets alone and its 1σ too small. An honest map (the
     unperturbed one) gets a scale of 1."""
-    from dataclasses import replace
-
     import semlab.fusion as fu
     import semlab.variational as va
 
@@ -668,14 +685,7 @@ def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
     real_map, real_scale = va.variational_parallax, fu.agreement_scale
     scales = []
 
-    def noisy(*a, **k):
-        dm = real_map(*a, **k)
-        e = np.random.default_rng(5).standard_normal(dm.x1_px.shape)
-        return replace(dm, x1_px=dm.x1_px + 3 * dm.sigma_px * e)
-
-    def spy(*a):
-        scales.append(real_scale(*a))
-        return scales[-1]
+    spy = _recorder(real_scale, scales)
 
     def run(scale):
         monkeypatch.setattr(fu, "agreement_scale", scale)
@@ -688,7 +698,7 @@ def test_variational_stage_weighs_a_map_by_how_well_it_agrees(monkeypatch):
 
     run(spy)
     assert scales == [1.0]                                  # the map as it is: agrees
-    monkeypatch.setattr(va, "variational_parallax", noisy)
+    monkeypatch.setattr(va, "variational_parallax", _with_errors(real_map, 3.0))
     scaled = run(spy)
     taken = run(lambda *a: 1.0)
     assert scales[-1] > 1.8, scales
@@ -702,8 +712,6 @@ def test_variational_stage_with_three_views_weighs_the_map_by_the_held_out_view(
     subsets alone: an honest map keeps a small scale and lowers the height error; a map whose
     errors are 3× its σ (noise added) is left out (scale ≥ 8), and the heights are those of
     the subsets alone."""
-    from dataclasses import replace
-
     import semlab.fusion as fu
     import semlab.variational as va
 
@@ -713,14 +721,7 @@ def test_variational_stage_with_three_views_weighs_the_map_by_the_held_out_view(
     real_map, real_held = va.variational_parallax, fu.held_out_scale
     scales = []
 
-    def noisy(*a, **k):
-        dm = real_map(*a, **k)
-        e = np.random.default_rng(5).standard_normal(dm.x1_px.shape)
-        return replace(dm, x1_px=dm.x1_px + 3 * dm.sigma_px * e)
-
-    def spy(*a):
-        scales.append(real_held(*a))
-        return scales[-1]
+    spy = _recorder(real_held, scales)
 
     def not_called(*a):
         raise AssertionError("agreement_scale used with three views")
@@ -738,7 +739,7 @@ def test_variational_stage_with_three_views_weighs_the_map_by_the_held_out_view(
     honest = rms()
     assert len(scales) == 2 and scales[0] < 3, scales           # views 1 and 2, one each
     assert honest < 0.9 * off, (honest, off)
-    monkeypatch.setattr(va, "variational_parallax", noisy)
+    monkeypatch.setattr(va, "variational_parallax", _with_errors(real_map, 3.0))
     noisy_rms = rms()
     assert min(scales[2:]) >= 8, scales
     assert noisy_rms <= 1.02 * off, (noisy_rms, off)
