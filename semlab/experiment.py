@@ -52,7 +52,10 @@ TOML_NAME = "experiment.toml"
 TOP_KEYS = {"name", "description", "pixel_size_um", "stereo", "series", "metrology"}
 METROLOGY_KEYS = {"regions"}
 STEREO_KEYS = {"views", "tilt_deg", "camera", "correspondences", "lines", "reference_region",
-               "reference_points"}
+               "reference_points", "tilt_order"}
+#: ``[stereo] tilt_order``: how estimated tilts run with the views' order (the sign of the
+#: heights, which the images cannot tell; :func:`semlab.reconstruct.estimate_tilts`)
+TILT_ORDERS = ("increasing", "decreasing")
 SERIES_KEYS = {"frames", "cycles", "minutes"}
 CAMERAS = ("affine", "perspective")
 #: Relative disagreement between TOML and metadata pixel sizes that is reported.
@@ -92,6 +95,10 @@ class StereoSpec:
         (see :func:`semlab.surface.reference_surface`).
     reference_points : (3, 2) list or None
         Three view-0 pixels ``[x, y]`` the reference plane goes through.
+    tilt_order : str
+        ``"increasing"`` (default) or ``"decreasing"``: how the stage tilt runs with the
+        views' order, used where the tilts are estimated (it fixes the sign of the heights,
+        which the images cannot tell: the Necker reversal ``θ → -θ, z → -z``).
     """
 
     view_paths: list
@@ -103,6 +110,7 @@ class StereoSpec:
     shape: tuple = (0, 0)
     reference_region: object = None
     reference_points: list | None = None
+    tilt_order: str = "increasing"
 
 
 @dataclass
@@ -600,13 +608,26 @@ def load(path) -> Experiment:
                 "[stereo] tilt_deg")
         _check_distinct_images(view_paths, [h[3] for h in headers], view_keys, toml_path,
                                tilt_deg)
+        tilt_order = st.get("tilt_order", "increasing")
+        if tilt_order not in TILT_ORDERS:
+            close = difflib.get_close_matches(str(tilt_order), TILT_ORDERS, n=1)
+            raise ExperimentError(f"{toml_path}: [stereo] tilt_order = {tilt_order!r} is not one "
+                                  f"of {TILT_ORDERS}" + (f"; did you mean {close[0]!r}?" if close
+                                                         else ""))
+        if tilt_deg is not None and "tilt_order" in st and len(tilt_deg) >= 2 and (
+                (tilt_deg[-1] > tilt_deg[0]) != (tilt_order == "increasing")):
+            raise ExperimentError(
+                f"{toml_path}: [stereo] tilt_order = {tilt_order!r} but the tilts "
+                f"({'[stereo] tilt_deg' if tilt_source == 'experiment' else 'image metadata'}: "
+                f"{tilt_deg[0]:g}° … {tilt_deg[-1]:g}°) run the other way; remove tilt_order "
+                "(it is used only where the tilts are estimated) or correct the tilts")
         corr = st.get("correspondences")
         lines = st.get("lines")
         stereo = StereoSpec(
             view_paths=view_paths, tilt_deg=tilt_deg, tilt_source=tilt_source, camera=camera,
             correspondences_path=None if corr is None else _resolve(root, corr, "[stereo] correspondences", toml_path),
             lines_path=None if lines is None else _resolve(root, lines, "[stereo] lines", toml_path),
-            shape=headers[0][0])
+            shape=headers[0][0], tilt_order=tilt_order)
         stereo.reference_region, stereo.reference_points = _reference_region(
             st, root, toml_path, headers[0][0])
 

@@ -487,7 +487,8 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None, aut
         if tilt_matches is None:
             tilt_matches = match_for_tilts(exp, progress=progress, auto_kw=auto_kw)
         tilt_pts = tilt_matches if len(tilt_matches) >= 20 else pts
-        est = reconstruct.estimate_tilts(tilt_pts, exp.pixel_size_um, progress=progress)
+        est = reconstruct.estimate_tilts(tilt_pts, exp.pixel_size_um, progress=progress,
+                                         increasing=st.tilt_order == "increasing")
         return np.asarray(est.tilt_deg), "estimated", np.asarray(est.tilt_sigma_deg)
     if lines_cal is not None:
         d = reconstruct.tilt_from_rotation(lines_cal.relative_R[1])
@@ -659,6 +660,14 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         axis_used = 90.0
     tilt, tilt_source, tilt_sigma = choose_tilts(exp, pts, lines_cal, progress=progress,
                                                  tilt_matches=tilt_matches, auto_kw=auto_kw)
+    if tilt_source == "estimated":
+        other = "decreasing" if exp.stereo.tilt_order == "increasing" else "increasing"
+        notes.append(f"the sign of the heights is a convention: the estimated tilts are "
+                     f"{exp.stereo.tilt_order} with the views' order ([stereo] tilt_order = "
+                     f"\"{exp.stereo.tilt_order}\"); the images cannot tell this from the "
+                     f"reverse (θ → −θ, z → −z). If extrusions come out as intrusions (a grain "
+                     f"as a bowl), the stage tilted the other way: set tilt_order = "
+                     f"\"{other}\" in [stereo] of {exp.toml_path}")
     # raw clicks carry no matching estimate: assume the typical hand-click error
     matched = np.isfinite(sigma_px)
     sigma_px = np.clip(np.where(matched, sigma_px, RAW_CLICK_SIGMA_PX), 1e-4, None)

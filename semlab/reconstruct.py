@@ -472,11 +472,12 @@ def _metric_tilts(uc, noise_weights=None):
     return phi, b, sv
 
 
-def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0):
-    """Fix sign (θ_last > θ_0) and common rotation (level plane or a known view's tilt)."""
+def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0, increasing=True):
+    """Fix sign (θ_last > θ_0, or < with ``increasing=False``) and common rotation (level
+    plane or a known view's tilt)."""
     d = np.angle(np.exp(1j * (phi - phi[0])))  # unwrap relative to view 0
     b = _rot2(-phi[0]) @ b
-    if d[-1] < 0:  # Necker reversal: θ → -θ, z → -z
+    if (d[-1] < 0) == bool(increasing):  # Necker reversal: θ → -θ, z → -z
         d = -d
         b = b * np.array([[1.0], [-1.0]])
     if ref_view is not None:
@@ -495,7 +496,7 @@ def _fix_gauge(phi, b, y, ref_view=None, ref_tilt=0.0):
 
 def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_deg=0.0,
                    tilt_axis_deg=90.0, n_boot=200, seed=0, progress=True,
-                   noise_free_view=None):
+                   noise_free_view=None, increasing=True):
     """Stage tilts and 3D points from 3+ affine views about a common axis (no tilt given).
 
     Metric upgrade for rotations about the common image y axis: the per-view centred
@@ -514,8 +515,9 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
       level in x (zero dz/dx); or, with ``reference_view``, that view's tilt is set to
       ``reference_tilt_deg``;
     - **sign** (Necker reversal ``θ → -θ, z → -z``): not observable from the images; fixed
-      so that tilt increases with view order (``θ_last > θ_0``). If your stage tilted the
-      other way, negate the tilts and z.
+      so that tilt increases with view order (``θ_last > θ_0``; ``increasing=False``: it
+      decreases). If your stage tilted the other way, pass ``increasing=False`` (in an
+      experiment: ``[stereo] tilt_order = "decreasing"``), which negates the tilts and z.
 
     Parameters
     ----------
@@ -543,6 +545,9 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
         reference the bias cancels and the correction only adds variance (0.06° without,
         0.10° with), so match against the middle view and leave this ``None`` (as
         :func:`semlab.pipeline.choose_tilts` does; right for equal noise in all views).
+    increasing : bool
+        The sign convention: True (default), the tilts increase with view order; False,
+        they decrease (the same fit with ``θ → -θ, z → -z``).
 
     Returns
     -------
@@ -592,7 +597,7 @@ def estimate_tilts(pts, pixel_size_um=None, reference_view=None, reference_tilt_
     def solve(idx):
         uc = u[:, idx] - u[:, idx].mean(axis=1, keepdims=True)
         phi, b, sv = _metric_tilts(uc, weights)
-        th, b = _fix_gauge(phi, b, yc[idx], ref, ref_t)
+        th, b = _fix_gauge(phi, b, yc[idx], ref, ref_t, increasing)
         return th, b, sv, uc
 
     th, b, sv, uc = solve(np.arange(n))

@@ -295,3 +295,17 @@ def test_metrology_regions_key(small_experiment):
     write_tiff(small_experiment / "empty.tif", 0 * mask)
     with pytest.raises(ExperimentError, match="is empty"):
         load_with('regions = { pit = "empty.tif" }')
+
+
+def test_tilt_order_is_checked(small_experiment):
+    """``[stereo] tilt_order`` (the sign convention of estimated tilts): a misspelt value is
+    refused with a suggestion; one that contradicts the given tilts is refused naming both."""
+    _edit(small_experiment, 'camera = "affine"', 'camera = "affine"\ntilt_order = "decreasng"')
+    with pytest.raises(ExperimentError, match="tilt_order = 'decreasng'.*did you mean 'decreasing'"):
+        load(small_experiment)
+    _edit(small_experiment, 'tilt_order = "decreasng"', 'tilt_order = "decreasing"')
+    with pytest.raises(ExperimentError, match="tilt_order = 'decreasing' but the tilts.*run the "
+                       "other way"):
+        load(small_experiment)
+    _edit(small_experiment, 'tilt_order = "decreasing"', 'tilt_order = "increasing"')
+    assert load(small_experiment).stereo.tilt_order == "increasing"

@@ -36,6 +36,16 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     # the automatic matcher's one parameter object is recorded
     assert res.calibration["auto_match_params"]["spacing_px"] == 8
     assert res.calibration["auto_match_params"]["min_zncc"] == 0.9
+    # the sign of estimated tilts is a convention, said in the notes with the key that flips
+    # it; tilt_order = "decreasing" gives the same fit with θ → −θ (and z → −z)
+    assert any('tilt_order = "decreasing"' in n for n in res.notes), res.notes
+    from dataclasses import replace
+
+    dec = replace(exp, stereo=replace(exp.stereo, tilt_order="decreasing"))
+    t_inc = pipeline.choose_tilts(exp, None, progress=False, tilt_matches=res.pts[full])[0]
+    t_dec, src, _ = pipeline.choose_tilts(dec, None, progress=False, tilt_matches=res.pts[full])
+    assert src == "estimated" and t_dec[-1] < t_dec[0]
+    np.testing.assert_allclose(t_dec, -t_inc, atol=1e-9)
 
 
 def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path):

@@ -576,3 +576,17 @@ def test_heights_from_tilts_with_view_valid_solve_each_point_over_its_views():
         heights_from_tilts(holed, tilts, s, view_valid=one)
     with pytest.raises(GeometryError, match="valid in every view"):
         heights_from_tilts(pts, tilts, s, view_valid=np.tile([True, True, True, False], (60, 1)))
+
+
+def test_estimate_tilts_sign_convention_is_a_parameter():
+    """The Necker reversal is not observable: ``increasing=False`` returns the same fit with
+    θ → −θ and z → −z, so a stage that tilted the other way gets its relief the right way up."""
+    xyz = make_scene(seed=2)
+    pts = project(xyz, (-5.0, 0.0, 5.0))
+    inc = estimate_tilts(pts, pixel_size_um=S, n_boot=0, progress=False)
+    dec = estimate_tilts(pts, pixel_size_um=S, n_boot=0, progress=False, increasing=False)
+    assert inc.tilt_deg[-1] > inc.tilt_deg[0] and dec.tilt_deg[-1] < dec.tilt_deg[0]
+    np.testing.assert_allclose(dec.tilt_deg, -inc.tilt_deg, atol=1e-9)
+    np.testing.assert_allclose(dec.xyz[:, 2], -inc.xyz[:, 2], atol=1e-9)
+    np.testing.assert_allclose(inc.xyz[:, 2] - inc.xyz[:, 2].mean(),
+                               xyz[:, 2] - xyz[:, 2].mean(), atol=1e-6)
