@@ -232,7 +232,10 @@ class Experiment:
                 t = "unknown" if st.tilt_deg is None else f"{st.tilt_deg[i]:+.3f}°"
                 out.append(f"    view {i}: {p.relative_to(self.root) if p.is_relative_to(self.root) else p}"
                            f"  tilt {t}")
-            out.append(f"  tilts from: {st.tilt_source}")
+            out.append(f"  tilts from: {st.tilt_source}" + (
+                f" (estimated from 3+ views as {st.tilt_order} with the views' order: the "
+                "sign of the heights; [stereo] tilt_order flips it)"
+                if st.tilt_deg is None and len(st.view_paths) >= 3 else ""))
             out.append(f"  correspondences: {st.correspondences_path or 'none (automatic matching)'}")
             out.append(f"  lines: {st.lines_path or 'none'}")
         else:

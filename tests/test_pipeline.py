@@ -21,6 +21,7 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     exp = _make(tmp_path, seed=0, tilts_deg=tuple(tilts), tilt_in_toml=False,
                 tilt_in_metadata=False, write_block=False)
     assert exp.stereo.tilt_deg is None
+    assert "as increasing with the views' order" in exp.summary()
     # the tilts' test: the subset matches (stage 9's two variational maps cost 45 of this
     # test's 62 s; the test below and the notebooks run the stage in the pipeline)
     res = pipeline.run_stereo(exp, method="auto", n_boot=0, progress=False,
