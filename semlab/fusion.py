@@ -153,6 +153,13 @@ def inverse_variance(a, sigma_a, b, sigma_b):
 CHI2_1_MEDIAN = 0.454936423119572
 
 
+def _usable(a, sa, b, sb):
+    """Rows where both estimates are finite and both σ finite and positive."""
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sb)
+                & (sa > 0) & (sb > 0))
+
+
 def agreement_scale(a, sigma_a, b, sigma_b):
     """How much larger ``sigma_b`` must be for ``a`` and ``b`` to disagree as their σ say.
 
@@ -176,9 +183,7 @@ def agreement_scale(a, sigma_a, b, sigma_b):
         ``k`` (1.0 with fewer than 8 usable rows).
     """
     a, sa, b, sb = (np.asarray(v, float).ravel() for v in (a, sigma_a, b, sigma_b))
-    with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sb)
-              & (sa > 0) & (sb > 0))
+    ok = _usable(a, sa, b, sb)
     if ok.sum() < 8:
         return 1.0
     d2, va, vb = (b[ok] - a[ok]) ** 2, sa[ok] ** 2, sb[ok] ** 2
@@ -230,9 +235,7 @@ def held_out_scale(a, sigma_a, b, sigma_b, c):
     """
     a, sa, b, sb = (np.asarray(v, float).ravel() for v in (a, sigma_a, b, sigma_b))
     c = np.asarray(c, float).reshape(len(a), -1)
-    with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sb)
-              & (sa > 0) & (sb > 0))
+    ok = _usable(a, sa, b, sb)
     cols = [(ok & np.isfinite(c[:, i])) for i in range(c.shape[1])]
     if sum(int(m.sum()) for m in cols) < 8:
         return 1.0
