@@ -4,6 +4,8 @@ Run:  python benchmarks/accuracy_matrix.py            # full matrix (394 s on an
       python benchmarks/accuracy_matrix.py --quick    # 3 small cells (< 3 min)
       python benchmarks/accuracy_matrix.py --sets clicks \
           --cells polished/realistic/-5/5,real:fei/realistic/0/8   # some cells, clicks only
+      python benchmarks/accuracy_matrix.py --sets auto \
+          --cells polished/realistic/-5/0/5    # a three-view cell (not in the full matrix)
       python benchmarks/accuracy_matrix.py --headline benchmarks/results/accuracy_matrix.md
                                                       # the README's compact table, no matching
 
@@ -20,6 +22,11 @@ Cells
   noise, per-image gain/offset, 8-bit);
 - tilt pairs: −5°/+5° and 0°/+8°; 384×512 px, 0.03 µm/px, 50 hand-click-like points with
   0.5 px click noise.
+- multi-view cells, on request (``--cells REGIME/NOISE/T0/T1/T2``): three or more tilts.
+  semlab matches from the middle view (``pipeline.match_views``) and so do the references
+  (each run from that view to every other one); every method's heights come from all views
+  at the points semlab's automatic matching accepted in all of them (points it kept in fewer
+  views are not scored). The Cramér–Rao column is for pairs only.
 
 Methods, all scored at the same points
 --------------------------------------
@@ -95,7 +102,8 @@ RESULTS = Path(__file__).resolve().parent / "results" / "accuracy_matrix.md"
 # ------------------------------------------------------------------------------ scenes
 def make_cell(tmp, regime, noise, tilts, seed=0, size=(384, 512), n_clicks=50):
     """An experiment for one cell: synth regime or real texture, stereo only."""
-    out = Path(tmp) / f"{regime.replace(':', '_')}_{noise}_{tilts[0]:+g}_{tilts[1]:+g}_{seed}"
+    out = Path(tmp) / (f"{regime.replace(':', '_')}_{noise}_"
+                       + "_".join(f"{t:+g}" for t in tilts) + f"_{seed}")
     kw = dict(seed=seed, size=size, tilts_deg=tilts, n_frames=0, n_clicks=n_clicks,
               detector=noise, write_block=False, progress=False)
     if regime.startswith("real:"):
@@ -147,16 +155,17 @@ def crb_height_nm(clean, detector, p0, tilts, pixel_size_um, half=10):
 # ------------------------------------------------------------------------------ semlab adapter
 @dataclass
 class Heights:
-    pts: np.ndarray        # (N, 2, 2) view-0 and view-1 (x, y) px
+    pts: np.ndarray        # (N, V, 2) (x, y) px in every view
     z_err_um: np.ndarray   # (N,) predicted 1σ (NaN when the method gives none)
     n_tried: int           # points the method was asked for (clicks) or grid cells (auto)
     seconds: float
 
 
-def semlab_variants(vparams=None):
+def semlab_variants(vparams=None, stage9=True):
     """(point set, method, matching keywords) of the semlab rows: fixed subsets, and the
     information-sized (adaptive) subsets where this semlab has them; ``vparams``: the
-    automatic sets' stage-9 ``variational_params`` (``--var``)."""
+    automatic sets' stage-9 ``variational_params`` (``--var``); ``stage9=False``: the
+    automatic sets without stage 9 (``variational_fusion=False``, ``--stage9-off``)."""
     from semlab import matching
 
     params = getattr(matching, "AutoMatchParams", None)
@@ -179,6 +188,9 @@ def semlab_variants(vparams=None):
     if vparams is not None:
         out = [(n, m, {**kw, "auto": {**kw["auto"], "variational_params": vparams}})
                if "auto" in kw else (n, m, kw) for n, m, kw in out]
+    if not stage9:
+        out = [(n, m, {**kw, "auto": {**kw["auto"], "variational_fusion": False}})
+               if "auto" in kw else (n, m, kw) for n, m, kw in out]
     return out
 
 
@@ -194,7 +206,7 @@ def semlab_heights(exp, method, **match_kw):
         res = pipeline.run_stereo(exp, method=method, n_boot=0, progress=False, **kw)
     corr = exp.correspondences()
     n = len(corr.pts) if (method == "refined" and corr is not None) else 0
-    return Heights(res.pts[:, :2], np.asarray(res.z_err_um, float), n,
+    return Heights(res.pts, np.asarray(res.z_err_um, float), n,
                    time.perf_counter() - t0)
 
 
@@ -266,6 +278,32 @@ def reference_matches(v0, v1, p0, flows):
     return out
 
 
+def reference_view(n_views):
+    """The view semlab's automatic matching takes as its reference (``pipeline.match_views``:
+    the middle one, view 0 of a pair); the references are run from the same view."""
+    return (n_views - 1) // 2
+
+
+def multiview_reference_matches(views, p_ref, ref):
+    """(N, V, 2) matches of every reference method at points ``p_ref`` of view ``ref``: each
+    method run from the reference view to every other view, as semlab matches (two views:
+    :func:`reference_matches` from view 0)."""
+    out = {}
+    for j in range(len(views)):
+        if j == ref:
+            continue
+        flows, _ = dense_flows(views[ref], views[j])
+        for name, m in reference_matches(views[ref], views[j], p_ref, flows).items():
+            out.setdefault(name, np.repeat(p_ref[:, None, :], len(views), axis=1).astype(float))
+            out[name][:, j] = m[:, 1]
+    return out
+
+
+def tilts_label(tilts):
+    """``-5/+0/+5°`` for the tables."""
+    return "/".join(f"{t:+g}" for t in tilts) + "°"
+
+
 # ------------------------------------------------------------------------------ scoring
 def coverage_auto(p0, shape, cell=8, border=16):
     """Fraction of the cell×cell grid cells inside ``border`` that hold an accepted point."""
@@ -322,15 +360,17 @@ def with_gauge(cells, sfx):
     return out
 
 
-def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams=None):
+def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams=None,
+             stage9=True):
     """Rows of one cell; ``sets``: only the semlab point sets whose name starts with one of
-    these (e.g. ``("clicks",)``), default all; ``vparams``: see :func:`semlab_variants`."""
+    these (e.g. ``("clicks",)``), default all; ``vparams``, ``stage9``: see
+    :func:`semlab_variants`."""
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
-    v0, v1 = exp.views()[:2]
-    flows, _ = dense_flows(v0, v1)
+    views = exp.views()[:len(tilts)]
+    v0, ref = views[0], reference_view(len(tilts))
     clean = clean_view0(exp, regime, seed, size)
     rows = []
-    variants = [v for v in semlab_variants(vparams)
+    variants = [v for v in semlab_variants(vparams, stage9)
                 if sets is None or any(v[0].startswith(k) for k in sets)]
     for set_name, method, match_kw in variants:
         try:
@@ -347,12 +387,18 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams
             cov = 1.0
             sem = None
         else:
-            p0 = sh.pts[:, 0]
+            # points seen in every view (with three or more, semlab also gives heights of
+            # points seen in fewer: not scored here, as the references could not be)
+            full = np.all(np.isfinite(sh.pts.reshape(len(sh.pts), -1)), axis=1)
+            sh = Heights(sh.pts[full], sh.z_err_um[full], sh.n_tried, sh.seconds)
+            p0 = sh.pts[:, ref]
             cov = (len(p0) / sh.n_tried if sh.n_tried else np.nan) \
-                if set_name.startswith("clicks") else coverage_auto(p0, v0.shape)
+                if set_name.startswith("clicks") else coverage_auto(sh.pts[:, 0], v0.shape)
             sem = score(exp, sh.pts, tilts, sh.z_err_um)
-        crb = float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
-        refs = {k: score(exp, v, tilts) for k, v in reference_matches(v0, v1, p0, flows).items()}
+        crb = (float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
+               if len(tilts) == 2 else np.nan)   # the bound of a pair only
+        refs = {k: score(exp, v, tilts)
+                for k, v in multiview_reference_matches(views, p0, ref).items()}
         df = {sfx: refs["DeepFlow"][f"rmse{sfx}"] for sfx in GAUGES}
         label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else
                                        " total" if "total" in set_name else "")
@@ -375,7 +421,7 @@ def table(cells):
     lines = [head, "|" + "---|" * 14]
     for (regime, noise, tilts), rows in cells:
         for r in rows:
-            lead = f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {r['set']} | {r['method']} "
+            lead = f"| {regime} | {noise} | {tilts_label(tilts)} | {r['set']} | {r['method']} "
             if "fail" in r:
                 lines.append(lead + f"| failed: {r['fail']} |" + " |" * 8)
                 continue
@@ -416,7 +462,7 @@ def summary(cells):
         at = by.get(("auto total", "semlab auto total"), {})
         total = (f"{rm(('auto total', 'semlab auto total'))} ({at['n']})"
                  if at and "fail" not in at else rm(("auto total", "semlab auto total")))
-        lines.append(f"| {regime} | {noise} | {tilts[0]:+g}/{tilts[1]:+g}° | {auto} | "
+        lines.append(f"| {regime} | {noise} | {tilts_label(tilts)} | {auto} | "
                      f"{rm(('auto', 'DeepFlow'))} | {rm(('auto', 'ECC 15px'))} | "
                      f"{rm(('auto', 'DIS fine'))} | {crb} | {adaptive} | "
                      f"{rm(('auto adaptive', 'DeepFlow'))} | {rm(('clicks', 'semlab refined'))} | "
@@ -481,12 +527,17 @@ def headline(markdown):
 
 
 def _parse_cell(text):
-    """(regime, noise, (t0, t1)) from ``REGIME/NOISE/T0/T1``."""
+    """(regime, noise, (t0, t1, ...)) from ``REGIME/NOISE/T0/T1[/T2...]`` (three or more
+    tilts: a multi-view cell, matched from the middle view)."""
     parts = text.strip().split("/")
-    if len(parts) != 4 or parts[0] not in REGIMES or parts[1] not in NOISES:
-        raise SystemExit(f"--cells: {text!r} is not REGIME/NOISE/T0/T1 with REGIME in "
+    try:
+        tilts = tuple(float(t) for t in parts[2:])
+    except ValueError:
+        tilts = ()
+    if len(tilts) < 2 or parts[0] not in REGIMES or parts[1] not in NOISES:
+        raise SystemExit(f"--cells: {text!r} is not REGIME/NOISE/T0/T1[/T2...] with REGIME in "
                          f"{REGIMES} and NOISE in {NOISES}")
-    return parts[0], parts[1], (float(parts[2]), float(parts[3]))
+    return parts[0], parts[1], tilts
 
 
 def main(argv=None):
@@ -507,6 +558,8 @@ def main(argv=None):
     ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
                     help="a semlab.variational.VariationalParams field of the automatic sets' "
                     "stage 9, e.g. --var norm_sigma_px=5 (repeatable)")
+    ap.add_argument("--stage9-off", action="store_true",
+                    help="the automatic sets without stage 9 (variational_fusion=False)")
     ap.add_argument("--headline", type=Path, default=None, metavar="RESULTS_MD",
                     help="print the README's compact table from a results file of this "
                     "script and stop (no matching)")
@@ -539,7 +592,7 @@ def main(argv=None):
             tc = time.perf_counter()
             cells.append(((regime, noise, tilts),
                           run_cell(tmp, regime, noise, tilts, args.seed, size, n_clicks,
-                                   sets, vparams)))
+                                   sets, vparams, not args.stage9_off)))
             print(f"{regime} {noise} {tilts}: {time.perf_counter() - tc:.0f} s", flush=True)
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     cmd = " ".join(["python benchmarks/accuracy_matrix.py"] + (argv if argv is not None
