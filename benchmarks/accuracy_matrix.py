@@ -23,8 +23,8 @@ Cells
 - tilt pairs: −5°/+5° and 0°/+8°; 384×512 px, 0.03 µm/px, 50 hand-click-like points with
   0.5 px click noise.
 - multi-view cells, on request (``--cells REGIME/NOISE/T0/T1/T2``): three or more tilts.
-  semlab matches from the middle view (``pipeline.match_views``) and so do the references
-  (each run from that view to every other one); every method's heights come from all views
+  semlab matches from its reference view (``AutoMatchParams.ref_view``, view 0) and so do
+  the references (each run from that view to every other one); every method's heights come from all views
   at the points semlab's automatic matching accepted in all of them (points it kept in fewer
   views are not scored). The Cramér–Rao column is for pairs only.
 
@@ -278,10 +278,14 @@ def reference_matches(v0, v1, p0, flows):
     return out
 
 
-def reference_view(n_views):
-    """The view semlab's automatic matching takes as its reference (``pipeline.match_views``:
-    the middle one, view 0 of a pair); the references are run from the same view."""
-    return (n_views - 1) // 2
+def reference_view():
+    """The view semlab's automatic matching takes as its reference
+    (``AutoMatchParams.ref_view``, view 0 by default, which ``pipeline.run_stereo`` keeps);
+    the references are run from the same view."""
+    from semlab import matching
+
+    params = getattr(matching, "AutoMatchParams", None)
+    return int(params().ref_view) if params is not None else 0
 
 
 def multiview_reference_matches(views, p_ref, ref):
@@ -367,7 +371,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams
     :func:`semlab_variants`."""
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
     views = exp.views()[:len(tilts)]
-    v0, ref = views[0], reference_view(len(tilts))
+    v0, ref = views[0], reference_view()
     clean = clean_view0(exp, regime, seed, size)
     rows = []
     variants = [v for v in semlab_variants(vparams, stage9)
@@ -528,7 +532,7 @@ def headline(markdown):
 
 def _parse_cell(text):
     """(regime, noise, (t0, t1, ...)) from ``REGIME/NOISE/T0/T1[/T2...]`` (three or more
-    tilts: a multi-view cell, matched from the middle view)."""
+    tilts: a multi-view cell, matched from view 0 as semlab does)."""
     parts = text.strip().split("/")
     try:
         tilts = tuple(float(t) for t in parts[2:])
