@@ -497,6 +497,39 @@ def choose_tilts(exp, pts, lines_cal=None, progress=True, tilt_matches=None, aut
     raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
 
 
+def pair_consistency_summary(pts, tilt_deg, sigma_views, pixel_size_um, tilt_axis_deg):
+    """The error bars of a run with 3+ views checked by its own views.
+
+    :func:`semlab.validation.view_pair_consistency` of the complete points: for the
+    ``calibration.json`` key ``pair_consistency`` (one dict per view pair: ``views``,
+    ``n_points``, ``robust_sd``, ``within_1sigma``, ``within_2sigma``, ``consistent``) and
+    one note per pair, which says so when the error bars do not hold between those views.
+
+    Returns
+    -------
+    (list of dict, list of str)
+    """
+    from .validation import CONSISTENT_WITHIN_2SIGMA, view_pair_consistency
+
+    rows = view_pair_consistency(pts, tilt_deg, sigma_views, pixel_size_um,
+                                 tilt_axis_deg=tilt_axis_deg)
+    out, notes = [], []
+    for r in rows:
+        out.append({k: v for k, v in r.items() if k != "u"})
+        a, b = r["views"]
+        msg = (f"error bars checked by the views: heights from views {a} and {b} alone differ "
+               f"from all views' by {r['robust_sd']:.2f} of their predicted σ (robust SD, "
+               f"{r['n_points']} points), {r['within_1sigma']:.0%} within 1σ and "
+               f"{r['within_2sigma']:.0%} within 2σ")
+        if not r["consistent"]:
+            msg += (f": fewer than {CONSISTENT_WITHIN_2SIGMA:.0%}, so the error bars do not "
+                    "hold (an error the matching σ leaves out: one common to a point's views, "
+                    "the camera model, scan distortion, or the surface looking different at "
+                    "these tilts)")
+        notes.append(msg)
+    return out, notes
+
+
 def view_sigmas(sigma_px, n_views, matched, ref_view=0, point_sigma_px=None):
     """Per-view 1σ of the x coordinates, (N, V) pixels, for :func:`surface.height_sigma`.
 
@@ -706,6 +739,11 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         else:
             calib["tilt_check"] = chk.to_dict()
             notes += [chk.message] if chk.message else []
+        if pts.shape[1] >= 3:
+            calib["pair_consistency"], pair_notes = pair_consistency_summary(
+                pts, tilt, view_sigmas(sigma_px, pts.shape[1], matched), exp.pixel_size_um,
+                axis_used)
+            notes += pair_notes
     if exp.stereo.camera != "perspective" and n_boot:
         sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
                                              seed=seed, tilt_axis_deg=axis_used,

@@ -5,6 +5,9 @@ its own), so height errors are measured after removing the least-squares plane o
 difference ``z_est − z_true``: what is left is the error in the relief itself. The plane is a
 gauge, so it may also be fitted robustly (``plane="robust"``: Huber IRLS), which one gross
 error cannot tilt.
+
+Without truth, :func:`view_pair_consistency` checks a multi-view run's error bars by its own
+views: the heights of each pair of views alone against all views', over their predicted σ.
 """
 
 from __future__ import annotations
@@ -116,6 +119,117 @@ def height_errors(z_est_um, z_true_um, xy=None, plane="lsq"):
     a = np.abs(e[ok])
     return {"err_um": e, "rmse_um": float(np.sqrt(np.mean(e[ok] ** 2))), "mae_um": float(a.mean()),
             "max_um": float(a.max()), "p95_um": float(np.percentile(a, 95)), "n": int(ok.sum())}
+
+
+#: below this fraction of pair differences within 2σ (95.4 % for right, Gaussian error bars)
+#: :func:`view_pair_consistency` says that the error bars do not hold between those views
+CONSISTENT_WITHIN_2SIGMA = 0.9
+
+
+def _pair_weights(tilt_deg, views, pixel_size_um):
+    """(V,) weights of the views' x coordinates (pixels) in the height (µm) solved from
+    ``views`` alone by least squares, ``u_i = (x cos θ_i + z sin θ_i)/s`` (two views: the
+    parallax closed form)."""
+    th = np.deg2rad(np.asarray(tilt_deg, float))
+    w = np.zeros(th.size)
+    A = np.column_stack([np.cos(th[views]), np.sin(th[views])]) / float(pixel_size_um)
+    w[views] = np.linalg.pinv(A)[1]
+    return w
+
+
+def view_pair_consistency(pts, tilt_deg, sigma_px, pixel_size_um, tilt_axis_deg=90.0,
+                          min_points=10):
+    """Error bars checked without truth: the heights of each view pair against all views'.
+
+    For three or more views, the heights from every two views ``(a, b)`` alone
+    (:func:`semlab.reconstruct.heights_from_tilts`, each pair with its own offsets) are
+    compared with the heights from all views. Both are linear in the views' x coordinates, so
+    under the error model the run's own σ use (:func:`semlab.surface.height_sigma`: each
+    view's x error independent, with the given σ) their difference has the predicted σ
+    ``sqrt(Σ_v (w_ab,v − w_all,v)² σ_v²)``, ``w`` the least-squares weights of each view's x
+    in the height. After the least-squares plane of the difference (a gauge: each solution's
+    unknown offsets) is removed, each difference is divided by it. Right error bars give a
+    robust SD of about 1 and 95 % within 2σ. With three views each point has one redundant
+    coordinate, so every pair gives the same check (its all-view fit's residual over its
+    predicted σ): it is reported once; with V views, V − 2 such directions.
+
+    An error common to every view of a point relative to its reference view (the reference
+    subset's own noise, or its look that the other views do not share) is outside that model:
+    in the pairs without the reference view it cancels, so those pairs against all views show
+    it, as does an error no matching σ holds (camera model, scan distortion). A subset's model
+    error (one height bias seen by every view) cancels in every difference: this check cannot
+    see it.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        ``(x, y)`` pixels of the points in every view, V >= 3 (rows with NaN are skipped).
+    tilt_deg : (V,) array_like
+        Tilts used for the heights, degrees.
+    sigma_px : (N, V) array
+        1σ of each view's x coordinate, pixels, as :func:`semlab.surface.height_sigma` takes
+        it (the reference column of matched points near 0: ``semlab.pipeline.view_sigmas``).
+    pixel_size_um : float
+    tilt_axis_deg : float
+        As for :func:`semlab.reconstruct.heights_from_tilts`.
+    min_points : int
+        Fewer finite points: no check.
+
+    Returns
+    -------
+    list of dict
+        One per view pair ``(a, b)`` whose heights are not those of all views and whose check
+        is not an earlier pair's (three views: one): ``views`` ``[a, b]``, ``n_points``, ``robust_sd``
+        (1.4826·MAD of the normalised differences), ``within_1sigma``, ``within_2sigma``,
+        ``consistent`` (``within_2sigma`` >= :data:`CONSISTENT_WITHIN_2SIGMA`), and ``u``
+        ((N,) normalised differences, NaN where not computed). Empty with fewer than three
+        views.
+    """
+    from .reconstruct import heights_from_tilts
+
+    P = np.asarray(pts, float)
+    if P.ndim != 3 or P.shape[2] != 2:
+        raise SemlabError(f"pts must be (N, V, 2) pixels, got shape {P.shape}")
+    n, v = P.shape[:2]
+    sig = np.asarray(sigma_px, float)
+    if sig.shape != (n, v):
+        raise SemlabError(f"sigma_px must be (N, V) = {(n, v)} pixels, got shape {sig.shape}")
+    th = np.asarray(tilt_deg, float).ravel()
+    if th.size != v:
+        raise SemlabError(f"tilt_deg has {th.size} values for {v} views")
+    ok = np.all(np.isfinite(P.reshape(n, -1)), axis=1) & np.all(np.isfinite(sig) & (sig > 0), 1)
+    out = []
+    if v < 3 or ok.sum() < max(int(min_points), 4):
+        return out
+    idx = np.flatnonzero(ok)
+    Q, S = P[idx], sig[idx]
+
+    def heights(views):
+        return heights_from_tilts(Q[:, views], th[views], pixel_size_um,
+                                  tilt_axis_deg=tilt_axis_deg).xyz_um[:, 2]
+
+    every = list(range(v))
+    z_all, w_all = heights(every), _pair_weights(th, every, pixel_size_um)
+    A = np.column_stack([Q[:, 0], np.ones(len(idx))])
+    for a in range(v):
+        for b in range(a + 1, v):
+            w = _pair_weights(th, [a, b], pixel_size_um) - w_all
+            if np.sum(w ** 2) <= 1e-12 * np.sum(w_all ** 2):
+                continue     # the same heights as all views' (e.g. the outer pair of ±θ, 0)
+            d = heights([a, b]) - z_all
+            d = d - A @ gauge_plane(A, d)
+            u = np.full(n, np.nan)
+            u[idx] = d / np.sqrt((S ** 2) @ (w ** 2))
+            if any(np.allclose(np.abs(u[idx]), np.abs(r["u"][idx]), rtol=1e-6, atol=1e-9)
+                   for r in out):
+                continue     # the same check as an earlier pair (three views: one residual)
+            m = np.abs(u[idx])
+            within2 = float(np.mean(m <= 2))
+            out.append({"views": [a, b], "n_points": int(len(idx)),
+                        "robust_sd": float(1.4826 * np.median(np.abs(u[idx] - np.median(u[idx])))),
+                        "within_1sigma": float(np.mean(m <= 1)), "within_2sigma": within2,
+                        "consistent": bool(within2 >= CONSISTENT_WITHIN_2SIGMA), "u": u})
+    return out
 
 
 def heightmap_errors(z_um, sigma_um, valid, truth, roi=None, border_px=20):

@@ -37,6 +37,13 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     # the automatic matcher's one parameter object is recorded
     assert res.calibration["auto_match_params"]["spacing_px"] == 8
     assert res.calibration["auto_match_params"]["min_zncc"] == 0.9
+    # the error bars checked by the views themselves: the heights of each view pair alone
+    # against all views' (validation.view_pair_consistency), in calibration.json and the notes
+    pc = res.calibration["pair_consistency"]
+    assert [c["views"] for c in pc] == [[0, 1]]     # three views: one residual per point
+    assert all(c["n_points"] == full.sum() for c in pc)
+    assert all(c["consistent"] and 0.6 < c["robust_sd"] < 1.3 for c in pc)
+    assert any("error bars checked by the views" in n for n in res.notes), res.notes
     # the sign of estimated tilts is a convention, said in the notes with the key that flips
     # it; tilt_order = "decreasing" gives the same fit with θ → −θ (and z → −z)
     assert any('tilt_order = "decreasing"' in n for n in res.notes), res.notes

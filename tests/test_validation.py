@@ -127,3 +127,61 @@ def test_heightmap_errors_known_answers(tmp_path):
         validation.heightmap_errors(z, z, valid, tmp_path, roi=(0, 0, 140, 90 + 1))
     with pytest.raises(SemlabError, match="one"):
         validation.heightmap_errors(z, z[:-1], valid, tmp_path, roi=roi)
+
+
+def _three_view_points(n=2000, tilts=(-5.0, 0.0, 5.0), s=0.03, noise_px=0.05, seed=0):
+    """Points of a relief seen at ``tilts`` (affine, axis along y), matched from view 0
+    (exact) with Gaussian x errors of ``noise_px`` in the other views."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0, 15, n)
+    y = rng.uniform(0, 10, n)
+    z = 0.3 * np.sin(x / 2.0) * np.cos(y / 3.0)
+    th = np.deg2rad(tilts)
+    pts = np.stack([np.column_stack([(x * np.cos(t) + z * np.sin(t)) / s, y / s]) for t in th], 1)
+    pts[:, 1:, 0] += rng.normal(0, noise_px, (n, len(tilts) - 1))
+    return pts
+
+
+def test_view_pair_consistency_tells_right_error_bars_from_too_small_ones():
+    tilts = (-5.0, 0.0, 5.0)
+    pts = _three_view_points(noise_px=0.05)
+    sig = np.full(pts.shape[:2], 0.05)
+    sig[:, 0] = 1e-6
+    right = validation.view_pair_consistency(pts, tilts, sig, 0.03)
+    # three views: one redundant coordinate per point, so one check
+    assert [r["views"] for r in right] == [[0, 1]]
+    for r in right:
+        assert r["n_points"] == 2000 and r["consistent"], r
+        assert 0.9 < r["robust_sd"] < 1.1 and 0.93 < r["within_2sigma"] <= 0.975
+        assert 0.63 < r["within_1sigma"] < 0.73
+    # the same matches with error bars half the size: said so
+    small = validation.view_pair_consistency(pts, tilts, np.where(sig > 1e-3, 0.025, sig), 0.03)
+    for r in small:
+        assert 1.8 < r["robust_sd"] < 2.2 and r["within_2sigma"] < 0.75 and not r["consistent"]
+    # an error common to both matches of a point (the reference subset's own), three times
+    # their own and left out of σ: the residual of the all-view fit holds it as an error of
+    # the reference view, so it stands out (sqrt(1 + 9 · 0.2) = 1.67 for these tilts)
+    rng = np.random.default_rng(1)
+    common = pts.copy()
+    common[:, 1:, 0] += rng.normal(0, 0.15, len(pts))[:, None]
+    c = {tuple(r["views"]): r for r in validation.view_pair_consistency(common, tilts, sig, 0.03)}
+    assert 1.5 < c[(0, 1)]["robust_sd"] < 1.85 and not c[(0, 1)]["consistent"]
+    # a plane between the pairs (their own offsets) is a gauge, not an error
+    tilted = pts.copy()
+    tilted[:, 2, 0] += 0.5 + 1e-3 * pts[:, 0, 0] - 2e-3 * pts[:, 0, 1]
+    again = validation.view_pair_consistency(tilted, tilts, sig, 0.03)
+    assert max(abs(x["robust_sd"] - r["robust_sd"]) for x, r in zip(again, right)) < 0.05
+
+
+def test_view_pair_consistency_needs_three_views_and_checks_shapes():
+    pts = _three_view_points(n=50)
+    sig = np.full(pts.shape[:2], 0.05)
+    assert validation.view_pair_consistency(pts[:, :2], (-5.0, 0.0), sig[:, :2], 0.03) == []
+    four = np.concatenate([pts, pts[:, 2:] + 0.01], axis=1)
+    out = validation.view_pair_consistency(four, (-5.0, 0.0, 5.0, 7.0), np.full((50, 4), 0.05),
+                                           0.03)
+    assert [r["views"] for r in out] == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+    with pytest.raises(SemlabError, match="sigma_px must be"):
+        validation.view_pair_consistency(pts, (-5.0, 0.0, 5.0), sig[:, :2], 0.03)
+    with pytest.raises(SemlabError, match="tilt_deg has 2 values"):
+        validation.view_pair_consistency(pts, (-5.0, 0.0), sig, 0.03)
