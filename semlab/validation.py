@@ -153,12 +153,14 @@ def view_pair_consistency(pts, tilt_deg, sigma_px, pixel_size_um, tilt_axis_deg=
     coordinate, so every pair gives the same check (its all-view fit's residual over its
     predicted σ): it is reported once; with V views, V − 2 such directions.
 
-    An error common to every view of a point relative to its reference view (the reference
-    subset's own noise, or its look that the other views do not share) is outside that model:
-    in the pairs without the reference view it cancels, so those pairs against all views show
-    it, as does an error no matching σ holds (camera model, scan distortion). A subset's model
-    error (one height bias seen by every view) cancels in every difference: this check cannot
-    see it.
+    An error no matching σ holds (camera model, scan distortion) shows. So does, outside the
+    model, an error common to a point's matches relative to its reference view (the
+    reference subset's own noise, or its look the other views do not share): it is an error
+    of the reference view's position, which the model takes as exact; how much it shows
+    depends on where the reference sits among the tilts (little at one end, where it also
+    changes the heights' σ little; twice over in the middle: docs/accuracy.md, quartz). A
+    subset's model error (one height bias seen by every view) cancels in every difference:
+    this check cannot see it.
 
     Parameters
     ----------
