@@ -288,16 +288,16 @@ def reference_view():
     return int(params().ref_view) if params is not None else 0
 
 
-def multiview_reference_matches(views, p_ref, ref):
+def multiview_reference_matches(views, p_ref, ref, flows):
     """(N, V, 2) matches of every reference method at points ``p_ref`` of view ``ref``: each
     method run from the reference view to every other view, as semlab matches (two views:
-    :func:`reference_matches` from view 0)."""
+    :func:`reference_matches` from view 0); ``flows``: ``{j: dense_flows(views[ref],
+    views[j])[0]}`` for every other view ``j``."""
     out = {}
     for j in range(len(views)):
         if j == ref:
             continue
-        flows, _ = dense_flows(views[ref], views[j])
-        for name, m in reference_matches(views[ref], views[j], p_ref, flows).items():
+        for name, m in reference_matches(views[ref], views[j], p_ref, flows[j]).items():
             out.setdefault(name, np.repeat(p_ref[:, None, :], len(views), axis=1).astype(float))
             out[name][:, j] = m[:, 1]
     return out
@@ -372,6 +372,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams
     exp = make_cell(tmp, regime, noise, tilts, seed, size, n_clicks)
     views = exp.views()[:len(tilts)]
     v0, ref = views[0], reference_view()
+    flows = {j: dense_flows(views[ref], views[j])[0] for j in range(len(views)) if j != ref}
     clean = clean_view0(exp, regime, seed, size)
     rows = []
     variants = [v for v in semlab_variants(vparams, stage9)
@@ -402,7 +403,7 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams
         crb = (float(np.median(crb_height_nm(clean, noise, p0, tilts, exp.pixel_size_um)))
                if len(tilts) == 2 else np.nan)   # the bound of a pair only
         refs = {k: score(exp, v, tilts)
-                for k, v in multiview_reference_matches(views, p0, ref).items()}
+                for k, v in multiview_reference_matches(views, p0, ref, flows).items()}
         df = {sfx: refs["DeepFlow"][f"rmse{sfx}"] for sfx in GAUGES}
         label = f"semlab {method}" + (" adaptive" if "adaptive" in set_name else
                                        " total" if "total" in set_name else "")
