@@ -502,8 +502,8 @@ def pair_consistency_summary(pts, tilt_deg, sigma_views, pixel_size_um, tilt_axi
 
     :func:`semlab.validation.view_pair_consistency` of the complete points: for the
     ``calibration.json`` key ``pair_consistency`` (one dict per view pair: ``views``,
-    ``n_points``, ``robust_sd``, ``within_1sigma``, ``within_2sigma``, ``consistent``) and
-    one note per pair, which says so when the error bars do not hold between those views.
+    ``n_points``, ``robust_sd``, ``within_1sigma``, ``within_2sigma``, ``consistent``) and one
+    note (the range over the pairs), which names the pairs whose error bars do not hold.
 
     Returns
     -------
@@ -513,21 +513,29 @@ def pair_consistency_summary(pts, tilt_deg, sigma_views, pixel_size_um, tilt_axi
 
     rows = view_pair_consistency(pts, tilt_deg, sigma_views, pixel_size_um,
                                  tilt_axis_deg=tilt_axis_deg)
-    out, notes = [], []
-    for r in rows:
-        out.append({k: v for k, v in r.items() if k != "u"})
-        a, b = r["views"]
-        msg = (f"error bars checked by the views: heights from views {a} and {b} alone differ "
-               f"from all views' by {r['robust_sd']:.2f} of their predicted σ (robust SD, "
-               f"{r['n_points']} points), {r['within_1sigma']:.0%} within 1σ and "
-               f"{r['within_2sigma']:.0%} within 2σ")
-        if not r["consistent"]:
-            msg += (f": fewer than {CONSISTENT_WITHIN_2SIGMA:.0%}, so the error bars do not "
-                    "hold (an error the matching σ leaves out: one common to a point's views, "
-                    "the camera model, scan distortion, or the surface looking different at "
-                    "these tilts)")
-        notes.append(msg)
-    return out, notes
+    out = [{k: v for k, v in r.items() if k != "u"} for r in rows]
+    if not out:
+        return out, []
+
+    def span(key, fmt):
+        lo, hi = min(r[key] for r in out), max(r[key] for r in out)
+        return format(lo, fmt) if format(lo, fmt) == format(hi, fmt) else \
+            f"{format(lo, fmt)}–{format(hi, fmt)}"
+
+    def names(rows):
+        return ", ".join(f"({r['views'][0]}, {r['views'][1]})" for r in rows)
+
+    msg = (f"error bars checked by the views: heights from view pairs alone ({names(out)}) "
+           f"differ from all views' by {span('robust_sd', '.2f')} of their predicted σ (robust SD, "
+           f"{out[0]['n_points']} points), {span('within_1sigma', '.0%')} within 1σ and "
+           f"{span('within_2sigma', '.0%')} within 2σ")
+    bad = [r for r in out if not r["consistent"]]
+    if bad:
+        msg += (f"; for {names(bad)} fewer than {CONSISTENT_WITHIN_2SIGMA:.0%} within 2σ, so "
+                "the error bars do not hold (an error the matching σ leaves out: one common to a "
+                "point's views, the camera model, scan distortion, or the surface looking "
+                "different at these tilts)")
+    return out, [msg]
 
 
 def view_sigmas(sigma_px, n_views, matched, ref_view=0, point_sigma_px=None):

@@ -56,6 +56,35 @@ def test_three_views_unknown_tilts_are_estimated(tmp_path):
     np.testing.assert_allclose(t_dec, -t_inc, atol=1e-9)
 
 
+def test_pair_consistency_summary_is_one_note_naming_the_pairs_that_fail():
+    """Four views: the range over the six pair checks in one note; pairs whose bars do not
+    hold are named (validation.view_pair_consistency on exact relief plus known noise)."""
+    rng = np.random.default_rng(0)
+    n, s = 1500, 0.03
+    x, y = rng.uniform(0, 15, n), rng.uniform(0, 10, n)
+    z = 0.3 * np.sin(x / 2.0)
+    th = np.deg2rad([-6.0, -2.0, 2.0, 6.0])
+    pts = np.stack([np.column_stack([(x * np.cos(t) + z * np.sin(t)) / s, y / s]) for t in th], 1)
+    pts[:, 1:, 0] += rng.normal(0, 0.05, (n, 3))
+    sig = np.full((n, 4), 0.05)
+    sig[:, 0] = 1e-6
+    rows, notes = pipeline.pair_consistency_summary(pts, np.rad2deg(th), sig, s, 90.0)
+    # six pairs, less those whose check repeats another's (symmetric tilts: one)
+    assert 4 <= len(rows) <= 6 and len(notes) == 1 and all(r["consistent"] for r in rows)
+    assert ", ".join(f"({a}, {b})" for a, b in (r["views"] for r in rows)) in notes[0]
+    assert "do not hold" not in notes[0] and "within 2σ" in notes[0]
+    # view 3's matches more than twice as noisy as their σ says (every comparison holds view 3,
+    # through the all-view heights): the pairs whose bars fail are named
+    pts[:, 3, 0] += rng.normal(0, 0.1, n)
+    rows, notes = pipeline.pair_consistency_summary(pts, np.rad2deg(th), sig, s, 90.0)
+    bad = [r["views"] for r in rows if not r["consistent"]]
+    assert bad and "do not hold" in notes[0], rows
+    assert "for " + ", ".join(f"({a}, {b})" for a, b in bad) + " fewer than 90%" in notes[0]
+    assert "u" not in rows[0]
+    assert pipeline.pair_consistency_summary(pts[:, :2], np.rad2deg(th[:2]), sig[:, :2], s,
+                                             90.0) == ([], [])
+
+
 def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path):
     exp = _make(tmp_path, seed=1, size=(128, 160), tilt_in_toml=False, tilt_in_metadata=False,
                 write_block=False, n_clicks=12)
