@@ -737,9 +737,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
                                         region=exp.stereo.reference_region,
                                         three_points_px=exp.stereo.reference_points)
     else:
+        sigma_views = view_sigmas(sigma_px, pts.shape[1], matched)
         xyz_3d, z_err, ref, tilt, chk = affine_heights(
-            exp, pts, tilt, tilt_source, sigma_px, axis_used, seed,
-            sigma_views=view_sigmas(sigma_px, pts.shape[1], matched))
+            exp, pts, tilt, tilt_source, sigma_px, axis_used, seed, sigma_views=sigma_views)
         if chk is None:
             calib["tilt_check"] = {"checked": False}
             notes.append(f"tilts not checked against the views: fewer than "
@@ -749,8 +749,7 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
             notes += [chk.message] if chk.message else []
         if pts.shape[1] >= 3:
             calib["pair_consistency"], pair_notes = pair_consistency_summary(
-                pts, tilt, view_sigmas(sigma_px, pts.shape[1], matched), exp.pixel_size_um,
-                axis_used)
+                pts, tilt, sigma_views, exp.pixel_size_um, axis_used)
             notes += pair_notes
     if exp.stereo.camera != "perspective" and n_boot:
         sig_boot = surface.bootstrap_heights(pts, tilt, exp.pixel_size_um, n_boot=n_boot,
