@@ -2,6 +2,8 @@
 
 ::
 
+    semlab init OUT --views IMG... [--frames IMG...]
+                                        a new experiment folder naming existing images
     semlab info EXPERIMENT              what was loaded: views, frames, sizes, pixel size, tilts
     semlab synth OUT [--seed ...]       write a synthetic experiment folder with truth/
     semlab run EXPERIMENT --out DIR     run the analysis and write reports + result files
@@ -46,6 +48,22 @@ def _cmd_info(args):
 
     exp = load(args.experiment)
     print(exp.summary())
+    return 0
+
+
+def _cmd_init(args):
+    from .experiment import init_experiment
+
+    exp = init_experiment(args.out, views=args.views, frames=args.frames, name=args.name,
+                          pixel_size_um=args.pixel_size, tilt_deg=args.tilts,
+                          cycles=args.cycles)
+    print(f"wrote {exp.toml_path}")
+    print(exp.summary())
+    st = exp.stereo
+    if st is not None and st.tilt_deg is None and len(st.view_paths) == 2:
+        print("  next: two views without tilts give no heights; add tilt_deg = [..., ...] "
+              f"under [stereo] in {exp.toml_path} (or re-run init with --tilts)")
+    print(f"  next: semlab run {args.out} --out RESULTS_FOLDER")
     return 0
 
 
@@ -129,6 +147,28 @@ def build_parser():
     p = argparse.ArgumentParser(prog="semlab", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
+
+    pn = sub.add_parser("init", help="write a new experiment folder naming existing images",
+                        description="Write OUT/experiment.toml naming existing images (they stay "
+                                    "where they are; paths relative to OUT). Pixel size and "
+                                    "tilts come from the images' SEM metadata unless given. "
+                                    "The file is loaded back before init returns: it writes "
+                                    "nothing it cannot load.")
+    pn.add_argument("out", help="new (or empty) folder for experiment.toml")
+    pn.add_argument("--views", nargs="+", default=None, metavar="IMG",
+                    help="end-state views at different stage tilts: files, folders or glob "
+                         "patterns, in tilt order (natural order within a folder: v2 before v10)")
+    pn.add_argument("--frames", nargs="+", default=None, metavar="IMG",
+                    help="series frames, earliest first: files, folders or glob patterns")
+    pn.add_argument("--name", default=None, help="experiment name (default: OUT's name)")
+    pn.add_argument("--pixel-size", type=float, default=None,
+                    help="µm per pixel (needed when the images carry no SEM metadata)")
+    pn.add_argument("--tilts", type=_floats, default=None,
+                    help="stage tilt of every view in degrees, comma-separated, e.g. -5,5 "
+                         "(default: the metadata, or estimated from 3+ views)")
+    pn.add_argument("--cycles", type=_floats, default=None,
+                    help="fatigue cycles of every frame, comma-separated")
+    pn.set_defaults(func=_cmd_init)
 
     pi = sub.add_parser("info", help="print what an experiment folder holds")
     pi.add_argument("experiment", help="experiment folder or its experiment.toml")

@@ -459,11 +459,20 @@ def _check_same_shape(shapes, paths, what, toml_path):
                 "at one resolution")
 
 
+def natural_key(path):
+    """Sort key of a path by its name with the digit runs compared as numbers, so that
+    ``f2.tif`` comes before ``f10.tif`` (the order a microscope's numbering means)."""
+    import re
+
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t.lower())
+            for t in re.split(r"(\d+)", Path(path).name) if t] + [(2, 0, str(path))]
+
+
 def _expand_frames(frames, root, toml_path):
     if isinstance(frames, str):
         pattern = frames if Path(frames).is_absolute() else str(root / frames)
-        found = sorted(p for p in (Path(x) for x in _glob.glob(pattern))
-                       if p.suffix.lower() in IMAGE_SUFFIXES)
+        found = sorted((p for p in (Path(x) for x in _glob.glob(pattern))
+                        if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
         if not found:
             raise ExperimentError(f"{toml_path}: [series] frames = {frames!r} matches no image "
                                   f"file (looked for {pattern}); check the pattern")
@@ -497,7 +506,8 @@ def _find_toml(path):
         if not path.is_file():
             raise ExperimentError(f"{path}: experiment file not found: {path.parent} is a folder "
                                   f"without {TOML_NAME}; give an experiment folder (see the "
-                                  "README for the format)")
+                                  "README for the format), or write one for images with "
+                                  "`semlab init NEW_FOLDER --views IMAGES`")
     elif path.is_file() and path.suffix.lower() != ".toml":
         kind = "an image" if path.suffix.lower() in IMAGE_SUFFIXES else "a file"
         raise ExperimentError(f"{path}: this is {kind}, not an experiment; give the experiment "
@@ -696,3 +706,150 @@ def load(path) -> Experiment:
     exp.correspondences()
     exp.lines()
     return exp
+
+
+def _images_of(entries, what):
+    """Image files named by ``entries`` (files, folders or glob patterns), in natural order
+    within each entry, the entries' order kept."""
+    out = []
+    for e in entries:
+        p = Path(e)
+        if p.is_dir():
+            found = sorted((q for q in p.iterdir()
+                            if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+            if not found:
+                raise ExperimentError(f"{p}: {what}: the folder holds no image file "
+                                      f"({', '.join(IMAGE_SUFFIXES)}); give the folder of the "
+                                      "images or the image files")
+        elif p.is_file():
+            if p.suffix.lower() not in IMAGE_SUFFIXES:
+                raise ExperimentError(f"{p}: {what}: not an image file (expected one of "
+                                      f"{', '.join(IMAGE_SUFFIXES)})")
+            found = [p]
+        else:
+            found = sorted((Path(x) for x in _glob.glob(str(e))
+                            if Path(x).is_file() and Path(x).suffix.lower() in IMAGE_SUFFIXES),
+                           key=natural_key)
+            if not found:
+                raise ExperimentError(f"{e}: {what}: no such file or folder, and no image file "
+                                      "matches it as a pattern; check the path")
+        out += [q.resolve() for q in found]
+    return out
+
+
+def init_experiment(out, views=None, frames=None, name=None, pixel_size_um=None,
+                    tilt_deg=None, cycles=None):
+    """Write a new experiment folder ``out`` whose ``experiment.toml`` names existing images.
+
+    The images stay where they are (the TOML points to them by paths relative to ``out``); no
+    image folder is written to. The TOML is loaded back with :func:`load` before this returns,
+    so what it writes is an experiment that loads; on any error nothing is left in ``out``.
+
+    Parameters
+    ----------
+    out : str or Path
+        New (or empty) folder for ``experiment.toml``.
+    views : sequence of str or Path, optional
+        End-state views at different stage tilts: image files, folders (every image inside)
+        or glob patterns, in this order; within a folder or pattern in natural order
+        (``v2`` before ``v10``).
+    frames : sequence of str or Path, optional
+        Frames of the fatigue series, earliest first, given like ``views``.
+    name : str, optional
+        Experiment name (default: the name of ``out``).
+    pixel_size_um : float, optional
+        µm per pixel; needed when no image carries it in its SEM metadata (FEI / Zeiss TIFF).
+    tilt_deg : sequence of float, optional
+        Stage tilt of every view, degrees; default the images' metadata, or estimated from
+        3+ views when they have none.
+    cycles : sequence of float, optional
+        Fatigue cycles of every frame (strictly increasing).
+
+    Returns
+    -------
+    Experiment
+        The loaded experiment (``toml_path`` is the written file).
+
+    Raises
+    ------
+    ExperimentError
+        ``out`` not empty, no views and no frames, a path without images, fewer than two
+        views or frames, a tilt or cycle list of the wrong length, no pixel size anywhere, or
+        anything :func:`load` refuses (images of different sizes, a copy of one view, ...).
+    """
+    import json
+    import os
+    import shutil
+    from datetime import datetime, timezone
+
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ExperimentError(f"{out}: exists and is not an empty folder; give a new folder for "
+                              "the experiment (the images stay where they are)")
+    if not views and not frames:
+        raise ExperimentError("give the end-state views (--views) or the series frames "
+                              "(--frames), or both")
+    view_paths = _images_of(views or [], "views")
+    frame_paths = _images_of(frames or [], "frames")
+    for what, paths in (("views", view_paths), ("frames", frame_paths)):
+        if paths and len(paths) < 2:
+            raise ExperimentError(f"{paths[0]}: {what}: only one image; {what} need two or "
+                                  "more (stage tilts of the same area / frames of the series)")
+    for what, values, paths in (("tilts", tilt_deg, view_paths), ("cycles", cycles, frame_paths)):
+        if values is not None and len(values) != len(paths):
+            raise ExperimentError(f"{len(values)} {what} for {len(paths)} "
+                                  f"{'views' if what == 'tilts' else 'frames'} "
+                                  f"({', '.join(p.name for p in paths)}); give one per image")
+    if pixel_size_um is None:
+        first = (view_paths + frame_paths)[0]
+        if all(read_image(p).pixel_size_um is None for p in view_paths + frame_paths):
+            raise ExperimentError(f"{first.parent}: the images carry no pixel size in SEM "
+                                  "metadata; give it, e.g. --pixel-size 0.03 (µm per pixel, "
+                                  "from the microscope or the scale bar)")
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    root = out.resolve()
+
+    def rel(p):
+        # relative to the TOML when the two share a folder below the file system's root (the
+        # experiment can move with its images), else absolute
+        try:
+            common = Path(os.path.commonpath([p, root]))
+        except ValueError:          # another drive
+            return p.as_posix()
+        return p.as_posix() if common == Path(common.anchor) else \
+            Path(os.path.relpath(p, root)).as_posix()
+
+    def array(paths):
+        return "[\n" + "".join(f"  {json.dumps(rel(p))},\n" for p in paths) + "]"
+
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [f"# written by semlab init on {stamp}; relative paths are relative to this file",
+             f"name = {json.dumps(str(name) if name else out.resolve().name)}"]
+    if pixel_size_um is not None:
+        lines.append(f"pixel_size_um = {float(pixel_size_um)!r}")
+    else:
+        lines.append("# pixel_size_um: from the images' SEM metadata (a value here overrides it)")
+    if view_paths:
+        lines += ["", "[stereo]", "views = " + array(view_paths)]
+        if tilt_deg is not None:
+            lines.append(f"tilt_deg = {json.dumps([float(t) for t in tilt_deg])}")
+        else:
+            lines.append("# tilt_deg = [...]  # stage tilts, degrees: from the images' metadata, "
+                         "else estimated from 3+ views")
+    if frame_paths:
+        lines += ["", "[series]", "frames = " + array(frame_paths)]
+        if cycles is not None:
+            lines.append(f"cycles = {json.dumps([float(c) for c in cycles])}")
+    toml_path = out / TOML_NAME
+    toml_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SemlabWarning)   # the notes are in exp.notes
+            return load(out)
+    except ExperimentError:
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        else:
+            toml_path.unlink(missing_ok=True)
+        raise

@@ -164,3 +164,79 @@ def test_run_on_partial_experiment_finishes(tmp_path, only, capsys):
     # the printed summary (not the code, which the HTML also shows) tells what ran
     tracked = re.search(r"\d+ tracks \(\d+ corner-seeded", html) is not None
     assert tracked == (only == "series")
+
+
+def _images(folder, names, pixel_size_um=None, tilts=None, seed=0):
+    """Distinct textured 8-bit images ``names`` in ``folder`` (with Zeiss metadata when given)."""
+    from semlab.io import write_tiff
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    paths = []
+    for i, n in enumerate(names):
+        img = rng.integers(0, 255, (80, 96)).astype(np.uint8)
+        p = folder / n
+        if p.suffix == ".tif":
+            write_tiff(p, img, pixel_size_um=pixel_size_um,
+                       tilt_deg=None if tilts is None else tilts[i])
+        else:
+            import cv2
+
+            cv2.imwrite(str(p), img)
+        paths.append(p)
+    return paths
+
+
+def test_init_writes_an_experiment_that_loads(tmp_path, capsys):
+    _images(tmp_path / "data" / "tilt", ["v_m5.tif", "v_p5.tif"], pixel_size_um=0.02,
+            tilts=[-5.0, 5.0])
+    _images(tmp_path / "data" / "series", ["f10.tif", "f2.tif", "f1.tif"], pixel_size_um=0.02,
+            seed=1)
+    out = tmp_path / "exp"
+    assert main(["init", str(out), "--views", str(tmp_path / "data" / "tilt"),
+                 "--frames", str(tmp_path / "data" / "series" / "f*.tif"),
+                 "--cycles", "100,200,1000"]) == 0
+    assert "semlab run" in capsys.readouterr().out
+    from semlab.experiment import load
+
+    exp = load(out)
+    # pixel size and tilts from the metadata, frames in natural (not character) order
+    assert exp.pixel_size_um == 0.02 and exp.stereo.tilt_deg == [-5.0, 5.0]
+    assert [p.name for p in exp.series.frame_paths] == ["f1.tif", "f2.tif", "f10.tif"]
+    assert exp.series.cycles.tolist() == [100, 200, 1000]
+    # the images stay where they are, named relative to the new folder
+    text = (out / "experiment.toml").read_text()
+    assert '"../data/tilt/v_m5.tif"' in text and sorted(p.name for p in out.iterdir()) == \
+        ["experiment.toml"]
+
+
+def test_init_refuses_and_writes_nothing(tmp_path, capsys):
+    views = _images(tmp_path / "png", ["a.png", "b.png", "c.png"])
+    out = tmp_path / "exp"
+    # no pixel size in PNGs: asked for, nothing written
+    assert main(["init", str(out), "--views", str(tmp_path / "png")]) == 2
+    assert "--pixel-size" in capsys.readouterr().err and not out.exists()
+    # a tilt list of the wrong length
+    assert main(["init", str(out), "--views", *map(str, views), "--pixel-size", "0.03",
+                 "--tilts=-5,5"]) == 2
+    assert "3 views" in capsys.readouterr().err and not out.exists()
+    # a copy of one view: load refuses it, and init leaves no file behind
+    (tmp_path / "png" / "d.png").write_bytes(views[0].read_bytes())
+    assert main(["init", str(out), "--views", str(tmp_path / "png"), "--pixel-size",
+                 "0.03"]) == 2
+    assert "identical pixels" in capsys.readouterr().err and not out.exists()
+    # one image, a folder without images, a non-empty target
+    assert main(["init", str(out), "--views", str(views[0]), "--pixel-size", "0.03"]) == 2
+    assert "only one image" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["init", str(out), "--frames", str(tmp_path / "empty")]) == 2
+    assert "holds no image" in capsys.readouterr().err
+    assert main(["init", str(tmp_path / "png"), "--views", str(views[0])]) == 2
+    assert "not an empty folder" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "png").iterdir()) == ["a.png", "b.png", "c.png",
+                                                                      "d.png"]
+    # given a pixel size, the three distinct views load (tilts to be estimated)
+    (tmp_path / "png" / "d.png").unlink()
+    assert main(["init", str(out), "--views", str(tmp_path / "png"), "--pixel-size",
+                 "0.03"]) == 0
+    assert "tilts from: unknown" in capsys.readouterr().out

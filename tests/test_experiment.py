@@ -118,6 +118,16 @@ def test_glob_matching_nothing(small_experiment):
         load(small_experiment)
 
 
+def test_glob_frames_in_natural_order(small_experiment):
+    # a microscope's numbering without leading zeros: frame_2 is before frame_10, as meant
+    series = small_experiment / "series"
+    for old, new in zip(sorted(series.glob("frame_*.tif")), ("f1", "f2", "f10", "f11")):
+        old.rename(series / f"{new}.tif")
+    _edit(small_experiment, 'frames = "series/frame_*.tif"', 'frames = "series/f*.tif"')
+    names = [p.name for p in load(small_experiment).series.frame_paths]
+    assert names == ["f1.tif", "f2.tif", "f10.tif", "f11.tif"]
+
+
 def test_frames_as_list(small_experiment):
     _edit(small_experiment, 'frames = "series/frame_*.tif"',
           'frames = ["series/frame_000.tif", "series/frame_001.tif", "series/frame_002.tif", '
