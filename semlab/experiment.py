@@ -847,7 +847,7 @@ def init_experiment(out, views=None, frames=None, name=None, pixel_size_um=None,
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SemlabWarning)   # the notes are in exp.notes
             return load(out)
-    except ExperimentError:
+    except BaseException:       # refused (an ExperimentError, a damaged image) or interrupted
         if created:
             shutil.rmtree(out, ignore_errors=True)
         else:

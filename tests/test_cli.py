@@ -235,6 +235,11 @@ def test_init_refuses_and_writes_nothing(tmp_path, capsys):
     assert "not an empty folder" in capsys.readouterr().err
     assert sorted(p.name for p in (tmp_path / "png").iterdir()) == ["a.png", "b.png", "c.png",
                                                                       "d.png"]
+    # a damaged image found while loading the written file: nothing left behind either
+    (tmp_path / "png" / "d.png").write_bytes(b"not a png")
+    assert main(["init", str(out), "--views", str(tmp_path / "png"), "--pixel-size",
+                 "0.03"]) == 2
+    assert "d.png" in capsys.readouterr().err and not out.exists()
     # given a pixel size, the three distinct views load (tilts to be estimated)
     (tmp_path / "png" / "d.png").unlink()
     assert main(["init", str(out), "--views", str(tmp_path / "png"), "--pixel-size",
