@@ -27,6 +27,7 @@ from dataclasses import replace
 import numpy as np
 
 from .errors import SemlabError
+from .stats import robust_sd
 
 __all__ = ["min_sigma_choice", "fuse_heightmaps", "inverse_variance", "sample_parallax",
            "agreement_scale", "held_out_scale"]
@@ -244,7 +245,7 @@ def held_out_scale(a, sigma_a, b, sigma_b, c):
         fused = inverse_variance(a, sa, b, k * sb)[0]
         r = np.concatenate([fused[m] - c[m, i] - np.median(fused[m] - c[m, i])
                             for i, m in enumerate(cols) if m.any()])
-        return 1.4826 * np.median(np.abs(r))
+        return robust_sd(r, about=0.0)
 
     ks = [2.0 ** (i / 4) for i in range(41)] + [np.inf]
     loss = [spread(k) for k in ks]

@@ -45,6 +45,7 @@ import numpy as np
 from .errors import GeometryError, ImageError, SemlabError
 from .heightmap_results import hillshade, measure_map, write_heightmap_results
 from .pipeline import rows_in_views
+from .stats import robust_sd
 
 __all__ = [
     "DenseParams",
@@ -364,7 +365,7 @@ def sigma_scale(x1_px, sigma_px, valid, half_window):
     r = r[np.isfinite(r)]
     if len(r) < 100:
         return 1.0
-    k = 1.4826 * np.median(np.abs(r - np.median(r)))
+    k = robust_sd(r)
     return float(max(1.0, k))
 
 
@@ -700,7 +701,7 @@ def height_model_from_points(pts, z_um):
     for _ in range(3):
         coef, *_ = np.linalg.lstsq(A[ok], z[ok], rcond=None)
         res = z - A @ coef
-        mad = 1.4826 * np.median(np.abs(res[ok]))
+        mad = robust_sd(res[ok], about=0.0)
         new = np.isfinite(res) & (np.abs(res) <= max(3.5 * mad, 1e-9))
         if new.sum() < 8 or np.array_equal(new, ok):
             break

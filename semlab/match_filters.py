@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from .match_epipolar import epipolar_refine
 from .subset import icgn_refine
+from .stats import MAD_TO_SIGMA, robust_sd
 
 
 def _parallax_gradients(xy, par, k=12, return_residual=False, quadratic=False):
@@ -60,7 +61,7 @@ def _local_outliers(xy, values, k, thresh_floor, n_mad=4.0):
     nbv = values[nb[:, 1:]]
     med = np.median(nbv, axis=1)
     mad = np.median(np.abs(nbv - med[:, None]), axis=1)
-    return np.abs(values - med) > np.maximum(n_mad * 1.4826 * mad, thresh_floor)
+    return np.abs(values - med) > np.maximum(n_mad * MAD_TO_SIGMA * mad, thresh_floor)
 
 
 def _backward_distance(img, ref_img, pts, pts_ref, warp, half_window, smooth_sigma_px,
@@ -148,8 +149,7 @@ def _multiview_residual(pts, ref, mask, n_iter=3, n_mad=4.0, floor_px=0.0, seed=
         E = R - R @ P
         res = np.sqrt(np.mean(E ** 2, axis=1))
         r_in = res[use]
-        thr = max(n_mad * 1.4826 * np.median(np.abs(r_in - np.median(r_in))) + np.median(r_in),
-                  floor_px)
+        thr = max(n_mad * robust_sd(r_in) + np.median(r_in), floor_px)
         new = mask & fin & (res <= thr)
         if new.sum() < 8 or np.array_equal(new, use):
             break

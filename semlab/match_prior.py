@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import GeometryError
+from .stats import robust_sd
 
 
 def fit_affine(src, dst):
@@ -190,7 +191,7 @@ def _aligned_noise(ref_img, warped, fwd, half_window, pts=None, tile_px=64):
 
     def mad(x):
         x = x.ravel()
-        return float(1.4826 * np.median(np.abs(x - np.median(x))) / np.sqrt(2.0))
+        return robust_sd(x) / np.sqrt(2.0)
 
     whole = mad(d[m:-m, m:-m])
     if pts is None:

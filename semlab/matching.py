@@ -56,6 +56,7 @@ from .match_prior import (_aligned_noise, _apply_affine, _dense_prior, _field_ja
 from .noise import image_noise_sigma
 from .refine import refine_correspondences
 from .registration import match_features
+from .stats import robust_sd
 from .subset import icgn_refine, prefilter_image, zncc_match
 
 if TYPE_CHECKING:
@@ -722,7 +723,7 @@ def _filter_roughness(st):
         # only roughness that stands out of the view's own distribution is rejected
         med = float(np.median(rough))
         thr_j = thr if med <= thr else \
-            max(thr, med + 4 * 1.4826 * float(np.median(np.abs(rough - med))))
+            max(thr, med + 4 * robust_sd(rough, about=med))
         bad = rough > thr_j
         st.fail(idx[bad], j, [f"parallax not locally planar (plane RMS {rr:.2f} px "
                               f"> {thr_j:.2f} px: steep flank)" for rr in rough[bad]])
@@ -794,8 +795,7 @@ def _filter_multiview(st):
     vm = st.vv & st.vv[:, [st.ref]]
     mres, _ = _multiview_residual(st.out, st.ref, valid, seed=p.seed, view_mask=vm)
     r_in = mres[valid]
-    thr = max(np.median(r_in) + 4 * 1.4826 * np.median(np.abs(r_in - np.median(r_in))),
-              p.multiview_px)
+    thr = max(np.median(r_in) + 4 * robust_sd(r_in), p.multiview_px)
     tested = vm.sum(1) >= 3
     bad = np.flatnonzero(tested & ~(mres <= thr))
     st.fail(bad, None, [f"views inconsistent: x coordinates off the rank-2 tilt-series model "
@@ -881,7 +881,7 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
         for _ in range(3):
             beta = np.linalg.lstsq(X[fit], y[fit], rcond=None)[0]
             r = y - X @ beta
-            mad = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
+            mad = robust_sd(r[use])
             fit = use & (np.abs(r - np.median(r[use])) <= 4 * mad) if mad > 0 else use
         cols.append(np.where(use, X @ beta, np.nan))
     return np.column_stack(cols) if cols else None

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import GeometryError
+from .stats import robust_sd
 
 __all__ = [
     "fit_reference_plane",
@@ -20,8 +21,6 @@ __all__ = [
 ]
 
 _TUKEY_C = 4.685  # 95 % efficiency at the normal model
-#: Rousseeuw's consistency factor turning the median absolute residual into a normal σ.
-_MAD_TO_SIGMA = 1.4826
 #: Without a given σ, the scale of the best RANSAC sample is this quantile of its |residuals|
 #: (so the plane may hold as little as 20 % of the points), divided by the same quantile of
 #: |N(0, 1)|, Φ⁻¹((1 + 0.2) / 2).
@@ -114,7 +113,7 @@ def fit_reference_plane(xyz_um, robust=True, max_iter=100, weights=None):
             floor = 1e-9 * zscale
             for _ in range(max_iter):  # Tukey biweight
                 r = z - a @ coef
-                scale = max(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))), floor)
+                scale = max(robust_sd(r), floor)
                 t = r / (_TUKEY_C * scale)
                 w = np.where(np.abs(t) < 1, (1 - t ** 2) ** 2, 0.0)
                 if np.count_nonzero(w) < 3:

@@ -9,6 +9,8 @@
   intervals (Efron & Tibshirani, *An Introduction to the Bootstrap*, 1993, ch. 13).
 - :func:`linear_trend`: least-squares slope with its Student-t confidence interval and the
   p-value of "no slope" (``scipy.stats.linregress``).
+- :func:`robust_sd`: ``1.4826 ×`` the median absolute deviation, the robust standard
+  deviation every outlier threshold and error-bar check of semlab uses.
 
 NaNs are dropped and counted; fewer than the required number of points raises
 :class:`semlab.errors.SemlabError`.
@@ -20,7 +22,39 @@ import numpy as np
 
 from .errors import SemlabError
 
-__all__ = ["bimodality", "compare_distributions", "correlation", "linear_trend"]
+__all__ = ["bimodality", "compare_distributions", "correlation", "linear_trend", "robust_sd"]
+
+#: Rousseeuw's consistency factor, ``1 / Φ⁻¹(3/4)`` to four digits: the median absolute
+#: deviation of a normal sample times this is its standard deviation.
+MAD_TO_SIGMA = 1.4826
+
+
+def robust_sd(values, about=None):
+    """Robust standard deviation: ``1.4826 ×`` the median absolute deviation.
+
+    Parameters
+    ----------
+    values : array_like
+        Finite values (any shape; NaNs are not dropped: pass ``values[np.isfinite(values)]``).
+    about : float, optional
+        The centre of the deviations; default the median of ``values`` (0 for residuals
+        already centred, e.g. about a fitted model).
+
+    Returns
+    -------
+    float
+        The standard deviation of a normal sample, unaffected by a minority of outliers.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.random.default_rng(0).normal(0, 2, 100_000)
+    >>> round(robust_sd(np.r_[x, [1e6] * 1000]), 1)   # 1 % gross outliers change it little
+    2.0
+    """
+    v = np.asarray(values, float)
+    c = np.median(v) if about is None else about
+    return float(MAD_TO_SIGMA * np.median(np.abs(v - c)))
 
 
 def _finite_1d(values, name, min_n):

@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 
 from .errors import SemlabError
+from .stats import robust_sd
 
 
 def _truth_dir(truth):
@@ -75,7 +76,7 @@ def gauge_plane(A, d, plane="lsq", n_iter=50, tol=1e-10):
         return coef
     for _ in range(n_iter):
         r = d - A @ coef
-        s = 1.4826 * np.median(np.abs(r - np.median(r)))
+        s = robust_sd(r)
         if not s > 0:
             break
         u = np.abs(r) / (HUBER_K * s)
@@ -228,7 +229,7 @@ def view_pair_consistency(pts, tilt_deg, sigma_px, pixel_size_um, tilt_axis_deg=
             m = np.abs(u[idx])
             within2 = float(np.mean(m <= 2))
             out.append({"views": [a, b], "n_points": int(len(idx)),
-                        "robust_sd": float(1.4826 * np.median(np.abs(u[idx] - np.median(u[idx])))),
+                        "robust_sd": robust_sd(u[idx]),
                         "within_1sigma": float(np.mean(m <= 1)), "within_2sigma": within2,
                         "consistent": bool(within2 >= CONSISTENT_WITHIN_2SIGMA), "u": u})
     return out

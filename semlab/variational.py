@@ -48,6 +48,7 @@ from scipy import ndimage
 
 from .errors import ImageError, SemlabError
 from .noise import with_seed_noise
+from .stats import robust_sd
 
 __all__ = ["VariationalParams", "normalise_local", "fit_epipolar", "refine_parallax",
            "variational_parallax"]
@@ -226,7 +227,7 @@ def fit_epipolar(x0, y0, x1, y1):
     for _ in range(3):
         e, *_ = np.linalg.lstsq(A[ok], b[ok], rcond=None)
         res = b - A @ e
-        mad = 1.4826 * np.median(np.abs(res[ok]))
+        mad = robust_sd(res[ok], about=0.0)
         new = ok & (np.abs(res) <= max(3.5 * mad, 1e-9))
         if new.sum() < 8 or np.array_equal(new, ok):
             break
@@ -624,8 +625,7 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
         w1, J, sig, inside = lv.warp(dl, e)
         r0 = w1 - lv.n0
         tin = (r0 / sig)[inside]
-        k = max(0.25, 1.4826 * float(np.median(np.abs(tin - np.median(tin))))) \
-            if tin.size else 1.0
+        k = max(0.25, robust_sd(tin)) if tin.size else 1.0
         dw = dl.copy()
         for _ in range(prm.irls):
             rl = r0 + J * (dl - dw)          # residual linearised about the warp

@@ -71,3 +71,13 @@ def test_errors():
         bimodality(np.ones(50))
     with pytest.raises(SemlabError):
         compare_distributions([1.0], [1.0, 2.0])
+
+
+def test_robust_sd_is_the_normal_sd_despite_outliers():
+    from semlab.stats import robust_sd
+
+    x = np.random.default_rng(3).normal(5.0, 0.7, 20000)
+    assert abs(robust_sd(x) - 0.7) < 0.02
+    assert abs(robust_sd(np.r_[x, np.full(400, 1e9)]) - 0.7) < 0.03     # 2 % gross outliers
+    assert robust_sd(x - 5.0, about=0.0) == pytest.approx(robust_sd(x), rel=0.02)
+    assert robust_sd([1.0, 1.0, 1.0]) == 0.0
