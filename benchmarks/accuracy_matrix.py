@@ -376,7 +376,8 @@ def run_cell(tmp, regime, noise, tilts, seed, size, n_clicks, sets=None, vparams
     clean = clean_view0(exp, regime, seed, size)
     rows = []
     variants = [v for v in semlab_variants(vparams, stage9)
-                if sets is None or any(v[0].startswith(k) for k in sets)]
+                if sets is None or any(v[0] == k[1:] if k.startswith("=") else
+                                       v[0].startswith(k) for k in sets)]
     for set_name, method, match_kw in variants:
         try:
             sh = semlab_heights(exp, method, **match_kw)
@@ -559,7 +560,8 @@ def main(argv=None):
                     "REGIME/NOISE/T0/T1, e.g. polished/realistic/-5/5,real:fei/realistic/0/8")
     ap.add_argument("--sets", default=None,
                     help="only these semlab point sets (and the references at their points), "
-                    "comma-separated prefixes: clicks, auto")
+                    "comma-separated prefixes: clicks, auto (=NAME: that set only, e.g. "
+                    "=auto for the default automatic points alone)")
     ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
                     help="a semlab.variational.VariationalParams field of the automatic sets' "
                     "stage 9, e.g. --var norm_sigma_px=5 (repeatable)")

@@ -81,6 +81,12 @@ class VariationalParams:
         Gaussian σ of the smoothing of the sample variances.
     cg_iter : int
         Conjugate-gradient iterations per solve (maximum); ``cg_tol`` relative residual.
+    sample_tol : float
+        Relative residual of the posterior samples' solves: their variance is a Monte Carlo
+        estimate (``n_samples``; tens of per cent of error per pixel before smoothing), so
+        1e-3 changes it far less than its own noise (≤ 2 % against exact solves, with the
+        multigrid) and saves most of the iterations with the band prior (the estimate and
+        the bias term are solved to ``cg_tol``).
     margin : int
         Pixels around a ``roi`` included in the solve (the result inside the ``roi`` hardly
         depends on the images farther away); see :meth:`margin_px`.
@@ -106,6 +112,23 @@ class VariationalParams:
         answer to the tolerance; 1.8× slower on the 384×512 demo pair), or exactly by a sparse
         LU factor (``scipy.sparse.linalg.splu``, minimum-degree ordering; one factor serves all the
         posterior samples and the bias; ~2 s per 320² window).
+    band_along, band_across : float
+        The band prior: slip bands are straight traces, so where the parallax map has one
+        local direction (the structure tensor of the current map, :func:`_band_field`, with
+        coherence ``c`` in [0, 1]), the differences along that direction get the extra
+        precision ``band_along · c² / s²`` (Huber like the others) and the isotropic prior is
+        multiplied by ``1 − (1 − 1 / band_across) c²``: the profile across a band is then estimated
+        from the data of a strip along it, so it needs less smoothing across. The direction
+        is that of the map minus its least-squares plane (the affine part the camera
+        geometry gives every pixel, e.g. a 0/+8° pair's x-scale, is no band), and the band
+        term acts on that difference. ``0`` / ``1``: the isotropic prior alone (the default
+        until 2026-12-06). The defaults (30, 4, 16 px) were chosen on one cell of
+        ``benchmarks/accuracy_matrix.py`` (polished, realistic noise, ±5°; six settings)
+        and then measured on all 16 textured cells, the three-view cells and the real
+        four-view series (docs/accuracy.md, "The band prior").
+    band_window_px : float
+        Gaussian σ (pixels) over which the structure tensor is averaged (its inner scale, the
+        smoothing of the map before its gradient, is 1.5 px).
     """
 
     warps: int = 5
@@ -118,6 +141,7 @@ class VariationalParams:
     sigma_smooth_px: float = 2.0
     cg_iter: int = 300
     cg_tol: float = 1e-5
+    sample_tol: float = 1e-3
     margin: int = 32
     half_window: int = 7
     seed: int = 0
@@ -125,6 +149,9 @@ class VariationalParams:
     prior_window_px: int = 15
     sigma_mode: str = "posterior+bias"
     solver: str = "amg"
+    band_along: float = 30.0
+    band_across: float = 4.0
+    band_window_px: float = 16.0
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``)."""
@@ -276,31 +303,74 @@ def _diff_t(f, axis, shape):
     return out
 
 
-def _laplace_apply(x, wh, wv):
-    """``Gᵀ W G x``, ``G`` the first differences."""
-    return _diff_t(wh * _diff(x, 1), 1, x.shape) + _diff_t(wv * _diff(x, 0), 0, x.shape)
+class _Prior:
+    """The prior's weighted differences at one linearisation: ``Gᵀ W G`` with ``G`` the first
+    differences along x (weights ``wh``, ``(H, W − 1)``) and y (``wv``, ``(H − 1, W)``) and,
+    with the band prior, the difference along the local band direction (``gt``, a sparse
+    ``((H − 1)(W − 1), H W)`` matrix, weights ``wt``)."""
+
+    def __init__(self, wh, wv, gt=None, wt=None, gt_plane=None):
+        self.wh, self.wv, self.gt, self.wt = wh, wv, gt, wt
+        self.gt_plane = gt_plane
+
+    def rhs(self, shape):
+        """``Gtᵀ Wt (Gt p)``: the band term acts on the map minus its plane ``p`` (its
+        difference along the band is ``Gt (d − p)``), which adds this to the normal equations'
+        right-hand side (zero without the band prior)."""
+        if self.gt is None or self.gt_plane is None:
+            return 0.0
+        return (self.gt.T @ (self.wt * self.gt_plane)).reshape(shape)
+
+    def apply(self, x):
+        """``Gᵀ W G x``."""
+        out = _diff_t(self.wh * _diff(x, 1), 1, x.shape) + _diff_t(self.wv * _diff(x, 0), 0,
+                                                                     x.shape)
+        if self.gt is not None:
+            out += (self.gt.T @ (self.wt * (self.gt @ x.ravel()))).reshape(x.shape)
+        return out
+
+    def diag(self, shape):
+        """The diagonal of ``Gᵀ W G``."""
+        d = np.zeros(shape)
+        d[:, :-1] += self.wh
+        d[:-1] += self.wv
+        d[:, 1:] += self.wh
+        d[1:] += self.wv
+        if self.gt is not None:
+            d += (self.gt.multiply(self.gt).T @ self.wt).reshape(shape)
+        return d
+
+    def matrix(self, shape):
+        """``Gᵀ W G`` as a sparse matrix on the C-ordered grid of ``shape``."""
+        from scipy import sparse
+
+        gh, gv = _diff_matrix(shape, 1), _diff_matrix(shape, 0)
+        m = gh.T @ sparse.diags(self.wh.ravel()) @ gh + gv.T @ sparse.diags(self.wv.ravel()) @ gv
+        if self.gt is not None:
+            m = m + self.gt.T @ sparse.diags(self.wt) @ self.gt
+        return m
+
+    def sample(self, rng, shape):
+        """``Gᵀ W^½ n`` for standard normal ``n``: the prior's part of a posterior sample."""
+        out = _diff_t(np.sqrt(self.wh) * rng.standard_normal(self.wh.shape), 1, shape)
+        out += _diff_t(np.sqrt(self.wv) * rng.standard_normal(self.wv.shape), 0, shape)
+        if self.gt is not None:
+            out += (self.gt.T @ (np.sqrt(self.wt) * rng.standard_normal(len(self.wt)))
+                    ).reshape(shape)
+        return out
 
 
-def _laplace_diag(wh, wv, shape):
-    d = np.zeros(shape)
-    d[:, :-1] += wh
-    d[:-1] += wv
-    d[:, 1:] += wh
-    d[1:] += wv
-    return d
-
-
-def _cg(D, wh, wv, b, x0, n_iter, tol):
+def _cg(D, prior, b, x0, n_iter, tol):
     """Jacobi-preconditioned conjugate gradients for ``(diag(D) + Gᵀ W G) x = b``."""
-    M = 1.0 / np.maximum(D + _laplace_diag(wh, wv, D.shape), 1e-12)
+    M = 1.0 / np.maximum(D + prior.diag(D.shape), 1e-12)
     x = x0.copy()
-    r = b - (D * x + _laplace_apply(x, wh, wv))
+    r = b - (D * x + prior.apply(x))
     z = M * r
     p = z.copy()
     rz = float(np.sum(r * z))
     bn = float(np.sqrt(np.sum(b * b))) or 1.0
     for _ in range(int(n_iter)):
-        Ap = D * p + _laplace_apply(p, wh, wv)
+        Ap = D * p + prior.apply(p)
         alpha = rz / max(float(np.sum(p * Ap)), 1e-300)
         x += alpha * p
         r -= alpha * Ap
@@ -326,51 +396,67 @@ def _diff_matrix(shape, axis):
     return sparse.kron(d1, sparse.identity(m), format="csr")
 
 
-def _matrix(D, wh, wv):
+def _matrix(D, prior):
     """``A = diag(D) + Gᵀ W G`` as a sparse CSR matrix on the C-ordered grid of ``D``."""
     from scipy import sparse
 
-    gh, gv = _diff_matrix(D.shape, 1), _diff_matrix(D.shape, 0)
-    return (sparse.diags(D.ravel()) + gh.T @ sparse.diags(wh.ravel()) @ gh
-            + gv.T @ sparse.diags(wv.ravel()) @ gv).tocsr()
+    return (sparse.diags(D.ravel()) + prior.matrix(D.shape)).tocsr()
 
 
-def _factor(D, wh, wv):
+def _factor(D, prior):
     """Sparse LU factor of ``A = diag(D) + Gᵀ W G``: a function ``b -> A⁻¹ b``."""
     from scipy.sparse.linalg import splu
 
-    lu = splu(_matrix(D, wh, wv).tocsc(), permc_spec="MMD_AT_PLUS_A",
+    lu = splu(_matrix(D, prior).tocsc(), permc_spec="MMD_AT_PLUS_A",
               options=dict(SymmetricMode=True))
     return lambda b: lu.solve(np.asarray(b, float).ravel()).reshape(D.shape)
 
 
-def _amg(D, wh, wv, n_iter, tol):
+def _amg(D, prior, n_iter, tol):
     """Conjugate gradients preconditioned by a classical (Ruge–Stüben) algebraic multigrid
     hierarchy of ``A`` (``pyamg``): a function ``b, x0 -> A⁻¹ b`` to the relative residual
     ``tol``. ``A`` is a diagonal plus a weighted grid Laplacian (an M-matrix, what classical
-    AMG is made for): 5–10 iterations instead of Jacobi's ~170 on a 384×512 view."""
+    AMG is made for; the band prior's oblique differences add small positive off-diagonal
+    terms): 5–10 iterations instead of Jacobi's ~170 on a 384×512 view."""
     import pyamg
+    from pyamg.krylov import cg
 
-    ml = pyamg.ruge_stuben_solver(_matrix(D, wh, wv))
+    A = _matrix(D, prior)
+    if prior.gt is None:
+        ml = pyamg.ruge_stuben_solver(A)
 
-    def solve(b, x0=None):
+        def solve(b, x0=None, rtol=None):
+            b = np.asarray(b, float)
+            x = ml.solve(b.ravel(), x0=None if x0 is None else np.asarray(x0, float).ravel(),
+                         tol=tol if rtol is None else rtol, maxiter=int(n_iter), accel="cg")
+            return x.reshape(b.shape)
+        return solve
+    # the band term's oblique couplings make positive off-diagonal entries (not an M-matrix):
+    # smoothed aggregation, a V-cycle preconditioning conjugate gradients (~20 iterations
+    # on a 384×512 view with band_along = 30; Ruge–Stüben on the M-matrix with those entries
+    # moved to the diagonal needs as many)
+    ml = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
+    M = ml.aspreconditioner(cycle="V")
+
+    def solve(b, x0=None, rtol=None):
         b = np.asarray(b, float)
-        x = ml.solve(b.ravel(), x0=None if x0 is None else np.asarray(x0, float).ravel(),
-                     tol=tol, maxiter=int(n_iter), accel="cg")
+        x, _ = cg(A, b.ravel(), x0=None if x0 is None else np.asarray(x0, float).ravel(),
+                  tol=tol if rtol is None else rtol, maxiter=int(n_iter), M=M)
         return x.reshape(b.shape)
     return solve
 
 
-def _linear_solver(D, wh, wv, prm):
+def _linear_solver(D, prior, prm):
     """``b, x0 -> A⁻¹ b`` by the method of ``prm.solver`` (one factor or multigrid hierarchy
     reused for all b)."""
     if prm.solver == "direct":
-        f = _factor(D, wh, wv)
-        return lambda b, x0=None: f(b)
+        f = _factor(D, prior)
+        return lambda b, x0=None, rtol=None: f(b)
     if prm.solver == "amg":
-        return _amg(D, wh, wv, prm.cg_iter, prm.cg_tol)
-    return lambda b, x0=None: _cg(D, wh, wv, b, np.zeros_like(b) if x0 is None else x0,
-                                  prm.cg_iter, prm.cg_tol)
+        return _amg(D, prior, prm.cg_iter, prm.cg_tol)
+    return lambda b, x0=None, rtol=None: _cg(D, prior, b,
+                                             np.zeros_like(b) if x0 is None else x0,
+                                             prm.cg_iter, prm.cg_tol if rtol is None else rtol)
 
 
 def _huber_w(t, c):
@@ -504,6 +590,10 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     if prm.sigma_mode not in ("posterior", "noise", "noise+bias", "posterior+bias"):
         raise SemlabError(f"VariationalParams.sigma_mode must be 'posterior', 'noise', "
                           f"'noise+bias' or 'posterior+bias', got {prm.sigma_mode!r}")
+    if not (prm.band_along >= 0 and prm.band_across >= 1 and prm.band_window_px > 0):
+        raise SemlabError(f"VariationalParams: band_along must be >= 0, band_across >= 1 and "
+                          f"band_window_px > 0, got {prm.band_along!r}, {prm.band_across!r}, "
+                          f"{prm.band_window_px!r}")
     v0, v1, p0, ok0 = _check_inputs(view0, view1, parallax0, valid0)
     hgt, wid = v0.shape
     roi = _check_roi(roi, v0.shape)
@@ -585,13 +675,72 @@ def _window_scale(lv, d, e, window):
     return float(np.median(1.0 / np.sqrt(np.maximum(good, 1e-12)))) if good.size else 1.0
 
 
-def _edge_weights(d, s, c):
+def _band_field(d, window_px):
+    """The local band direction of a parallax map ``d``: the structure tensor of its gradient
+    (``d`` smoothed over 1.5 px) averaged over a Gaussian of σ ``window_px`` (Bigun &
+    Granlund 1987; Weickert, Anisotropic Diffusion in Image Processing, 1998, ch. 2).
+
+    Returns
+    -------
+    gt : sparse ((H − 1)(W − 1), H W) matrix
+        The derivative along the band direction ``(cos a, sin a)`` (perpendicular to the
+        tensor's main eigenvector) at the centre of each cell of four pixels, from the cell's
+        gradient ``(∂x, ∂y)`` (the mean of its two differences along x, and along y; second
+        order there: the forward differences of one pixel would add half the across-band
+        curvature, which is large at a band's wall).
+    coherence : ((H − 1) (W − 1),) array
+        ``(λ₁ − λ₂) / (λ₁ + λ₂)`` of the tensor, in [0, 1]: 1 where the map has one direction,
+        0 where it has none (noise, an isotropic bump).
+    """
+    from scipy import sparse
+
+    hgt, wid = d.shape
+    g = ndimage.gaussian_filter(d, 1.5, mode="reflect")
+    gx, gy = _grad_x(g), _grad_y(g)
+    avg = lambda a: ndimage.gaussian_filter(a, window_px, mode="reflect")  # noqa: E731
+    jxx, jxy, jyy = avg(gx * gx), avg(gx * gy), avg(gy * gy)
+    cell = lambda a: 0.25 * (a[:-1, :-1] + a[:-1, 1:] + a[1:, :-1] + a[1:, 1:])  # noqa: E731
+    # the direction at the cell centre (the tensor averaged over its corners: no 180° wrap)
+    jxx, jxy, jyy = cell(jxx), cell(jxy), cell(jyy)
+    coh = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2) / np.maximum(jxx + jyy, 1e-300)
+    along = 0.5 * np.arctan2(2 * jxy, jxx - jyy) + 0.5 * np.pi
+    c, sn = 0.5 * np.cos(along).ravel(), 0.5 * np.sin(along).ravel()
+    ii, jj = np.mgrid[0:hgt - 1, 0:wid - 1]
+    p = (ii * wid + jj).ravel()
+    rows = np.tile(np.arange(len(p)), 4)
+    # c ∂x + s ∂y, ∂x = ½(d01 − d00 + d11 − d10), ∂y = ½(d10 − d00 + d11 − d01)
+    gt = sparse.csr_matrix((np.concatenate([-c - sn, c - sn, sn - c, c + sn]),
+                            (rows, np.concatenate([p, p + 1, p + wid, p + wid + 1]))),
+                           shape=(len(p), hgt * wid))
+    return gt, np.clip(coh.ravel(), 0.0, 1.0)
+
+
+def _prior_weights(d, s, prm):
+    """IRLS weights of the prior at the map ``d`` (Huber with threshold ``prm.smooth_huber``
+    prior scales ``s``), with the band prior of ``prm`` (see :class:`VariationalParams`)."""
+    c = prm.smooth_huber
     wh = _huber_w(_diff(d, 1) / s, c) / s ** 2
     wv = _huber_w(_diff(d, 0) / s, c) / s ** 2
-    return wh, wv
+    if prm.band_along <= 0 and prm.band_across == 1:
+        return _Prior(wh, wv)
+    # the bands are in the relief: the parallax minus its least-squares plane (the affine
+    # part every pixel has from the camera geometry, e.g. a 0/+8° pair's x-scale, would
+    # otherwise give the whole map one "band" direction across x, and a pull on its slope)
+    hgt, wid = d.shape
+    yy, xx = np.mgrid[0:hgt, 0:wid]
+    X = np.column_stack([np.ones(d.size), xx.ravel() - wid / 2, yy.ravel() - hgt / 2])
+    ok = np.isfinite(d.ravel())
+    plane = (X @ np.linalg.lstsq(X[ok], d.ravel()[ok], rcond=None)[0]).reshape(d.shape)
+    gt, coh = _band_field(d - plane, prm.band_window_px)
+    c2 = np.ones(d.shape)
+    c2[:-1, :-1] = coh.reshape(hgt - 1, wid - 1) ** 2
+    iso = 1.0 - (1.0 - 1.0 / prm.band_across) * c2
+    gp = gt @ plane.ravel()
+    wt = prm.band_along * c2[:-1, :-1].ravel() * _huber_w((gt @ d.ravel() - gp) / s, c) / s ** 2
+    return _Prior(wh * iso[:, :-1], wv * iso[:-1, :], gt, wt, gp)
 
 
-def _sample_variance(D, wh, wv, prm, rng, n, prior=True):
+def _sample_variance(D, weights, prm, rng, n, prior=True):
     """Per-pixel variance ``mean(x²)`` of ``n`` perturbation samples
     ``x = A⁻¹ (D^½ n₁ + Gᵀ W^½ n₂)``, ``A = diag(D) + Gᵀ W G``, and the solver of ``A``.
 
@@ -600,14 +749,13 @@ def _sample_variance(D, wh, wv, prm, rng, n, prior=True):
     summed as the samples come (one image in memory, not ``n``: a 1216² tile of stage 9 in
     tiled matching held twelve).
     """
-    solve = _linear_solver(D, wh, wv, prm)
+    solve = _linear_solver(D, weights, prm)
     acc = np.zeros(D.shape)
     for _ in range(int(n)):
         b = np.sqrt(D) * rng.standard_normal(D.shape)
         if prior:
-            b += _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, D.shape)
-            b += _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, D.shape)
-        x = solve(b)
+            b += weights.sample(rng, D.shape)
+        x = solve(b, rtol=prm.sample_tol)
         acc += x * x
     return acc / max(int(n), 1), solve
 
@@ -632,19 +780,20 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
             wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
                           / (k * sig) ** 2, 0.0)
             D = wd * J * J
-            wh, wv = _edge_weights(dl, s, prm.smooth_huber)
-            dl = _linear_solver(D, wh, wv, prm)(D * dw - wd * J * r0, dl)
+            pw = _prior_weights(dl, s, prm)
+            dl = _linear_solver(D, pw, prm)(D * dw - wd * J * r0 + pw.rhs(D.shape), dl)
     # posterior variance at the last linearisation
     w1, J, sig, inside = lv.warp(dl, e)
     r0 = w1 - lv.n0
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
     post = prm.sigma_mode.startswith("posterior")
-    wh, wv = _edge_weights(dl, s, prm.smooth_huber)
-    var, solve = _sample_variance(D, wh, wv, prm, rng, prm.n_samples, post)
+    weights = _prior_weights(dl, s, prm)
+    var, solve = _sample_variance(D, weights, prm, rng, prm.n_samples, post)
     if prm.sigma_mode in ("noise+bias", "posterior+bias"):
-        # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂)
-        var = var + solve(_laplace_apply(dl, wh, wv)) ** 2
+        # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂; the
+        # band term's on d̂ minus its plane)
+        var = var + solve(weights.apply(dl) - weights.rhs(dl.shape)) ** 2
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
     g = lambda a: ndimage.gaussian_filter(a, prm.norm_sigma_px, mode="reflect")  # noqa: E731
