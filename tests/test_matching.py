@@ -481,7 +481,9 @@ def test_total_error_sizing_beats_fixed_subsets_on_a_poor_flat_texture():
     """A flat surface (known heights: 0) with a texture weak against the noise: the fixed
     21×21 subsets are information-starved; sized by each point's predicted total error
     (``target_sigma_px=0, curvature_neighbours=1``) the grid grows to larger subsets (no
-    curvature to stop it) and the height error falls, with error bars that still hold."""
+    curvature to stop it) and the height error falls, with error bars that still hold. The
+    subset matches alone (stage 9's map, which pools the flat texture along its own prior,
+    left out: the sizing is what is tested)."""
     sc = Scene(seed=5, shape=(150, 200))
     sc.amps = np.zeros(3)
     ims = [sc.render(TILTS[0], noise=0.3, seed=1), sc.render(TILTS[1], noise=0.3, seed=2)]
@@ -489,7 +491,8 @@ def test_total_error_sizing_beats_fixed_subsets_on_a_poor_flat_texture():
     rms, held = {}, {}
     for name, kw in (("fixed", dict(target_sigma_px=None)),
                      ("total", dict(target_sigma_px=0.0, curvature_neighbours=1))):
-        a = auto_match(ims, spacing_px=8, progress=False, band_aware=False, **kw)
+        a = auto_match(ims, spacing_px=8, progress=False, band_aware=False,
+                       variational_fusion=False, **kw)
         v = a.only_valid()
         assert len(v) > 0.9 * len(a)
         z = heights_from(v.pts, sc.c[0])
@@ -499,7 +502,7 @@ def test_total_error_sizing_beats_fixed_subsets_on_a_poor_flat_texture():
         if name == "total":
             assert np.median(v.subset_px) > 21
             assert a.params.curvature_neighbours == 1
-    assert rms["total"] < 0.75 * rms["fixed"], rms        # 4.8 against 7.9 nm
+    assert rms["total"] < 0.75 * rms["fixed"], rms
     assert 0.5 <= held["total"][0] <= 0.85 and held["total"][1] >= 0.9, held
 
 
