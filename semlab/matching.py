@@ -339,9 +339,14 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         textures; low and realistic noise; ±5° and 0/+8°), at the same points: height RMSE
         0.68–0.97× OpenCV DeepFlow's where the subset matches alone are 0.76–1.32× (better
         on fifteen) and the variational map alone 0.77–1.11× (better on thirteen), with 66–81 %
-        of the errors within 1σ and 91–97 % within 2σ. It costs one variational map per view
-        pair: ``auto_match`` takes 3–5× as long (single thread, 2026-12-04: the 384×512 demo
-        pair 2.2 → 8.3 s; a 2048×1536 pair's ``run_stereo`` 34 → 182 s). The map's σ is
+        of the errors within 1σ and 91–97 % within 2σ. With the map's band prior (the
+        default since 2026-12-06, :class:`semlab.variational.VariationalParams`
+        ``band_along``): 0.33–0.66× DeepFlow on all sixteen, 94–99 % within 2σ, 74–87 %
+        within 1σ (``benchmarks/results/accuracy_matrix_band.md``). It costs one variational
+        map per view pair: ``auto_match`` took 3–5× as long with the isotropic prior (single
+        thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
+        ``run_stereo`` 34 → 182 s), and the band prior makes the map ~3× slower again (the
+        demo pair's map 9.9 → 31.7 s, 2026-12-06). The map's σ is
         scaled (k ≥ 1): with three or more views by how well the average predicts each
         other view's subset matches (:func:`semlab.fusion.held_out_scale`), with two by its
         agreement with the subset matches (:func:`semlab.fusion.agreement_scale`; 1 on every
