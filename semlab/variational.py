@@ -121,8 +121,8 @@ class VariationalParams:
         from the data of a strip along it, so it needs less smoothing across. The direction
         is that of the map minus its least-squares plane (the affine part the camera
         geometry gives every pixel, e.g. a 0/+8° pair's x-scale, is no band), and the band
-        term acts on that difference. ``0`` / ``1``: the isotropic prior alone (the default
-        until 2026-12-06). The defaults (30, 4, 16 px) were chosen on one cell of
+        term acts on that difference. ``0`` / ``1`` (the default): the isotropic prior alone.
+        Opt-in: ``band_along=30, band_across=4`` (with ``band_window_px=16``) were chosen on one cell of
         ``benchmarks/accuracy_matrix.py`` (polished, realistic noise, ±5°; six settings)
         and then measured on all 16 textured cells, the three-view cells and the real
         four-view series (docs/accuracy.md, "The band prior").
@@ -149,8 +149,8 @@ class VariationalParams:
     prior_window_px: int = 15
     sigma_mode: str = "posterior+bias"
     solver: str = "amg"
-    band_along: float = 30.0
-    band_across: float = 4.0
+    band_along: float = 0.0
+    band_across: float = 1.0
     band_window_px: float = 16.0
 
     def margin_px(self):
