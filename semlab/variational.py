@@ -124,8 +124,8 @@ class VariationalParams:
         term acts on that difference. ``0`` / ``1`` (the default): the isotropic prior alone.
         Opt-in: ``band_along=30, band_across=4`` (with ``band_window_px=16``) were chosen on one cell of
         ``benchmarks/accuracy_matrix.py`` (polished, realistic noise, ±5°; six settings)
-        and then measured on all 16 textured cells, the three-view cells and the real
-        four-view series (docs/accuracy.md, "The band prior").
+        and then measured on all 16 textured two-view cells, the 8 dense-map scenes and the
+        real four-view series (not the three-view cells; docs/accuracy.md, "The band prior").
     band_window_px : float
         Gaussian σ (pixels) over which the structure tensor is averaged (its inner scale, the
         smoothing of the map before its gradient, is 1.5 px).
@@ -416,8 +416,8 @@ def _amg(D, prior, n_iter, tol):
     """Conjugate gradients preconditioned by a classical (Ruge–Stüben) algebraic multigrid
     hierarchy of ``A`` (``pyamg``): a function ``b, x0 -> A⁻¹ b`` to the relative residual
     ``tol``. ``A`` is a diagonal plus a weighted grid Laplacian (an M-matrix, what classical
-    AMG is made for; the band prior's oblique differences add small positive off-diagonal
-    terms): 5–10 iterations instead of Jacobi's ~170 on a 384×512 view."""
+    AMG is made for): 5–10 iterations instead of Jacobi's ~170 on a 384×512 view. With the
+    band prior ``A`` is not an M-matrix: smoothed aggregation preconditions CG instead."""
     import pyamg
     from pyamg.krylov import cg
 
