@@ -488,16 +488,28 @@ def _epipolar_moved(e, origins, sign):
     return e.tolist()
 
 
+def _plane_moved(c, origins, sign):
+    """The parallax plane ``x1 − x0 = c0 + cx x0 + cy y0`` of image pixels in the pixels of
+    crops at ``origins`` (``sign`` +1), or back (−1): only ``c0`` changes."""
+    (ax, ay), (bx, by) = origins[0], origins[1]
+    c = np.asarray(c, float).copy()
+    c[0] += sign * (c[1] * ax + c[2] * ay - (bx - ax))
+    return c.tolist()
+
+
 def _parallax_tile(crops, roi, points, method, params, calibration, origins):
     """One tile of :func:`tiled_parallax` (positions in crop pixels; the calibration's
-    epipolar relation in image pixels, moved to the crops' and back)."""
+    epipolar relation and parallax plane in image pixels, moved to the crops' and back)."""
     cal = dict(calibration)
-    if cal.get("epipolar") is not None:
-        cal["epipolar"] = _epipolar_moved(cal["epipolar"], origins, +1)
+    moves = (("epipolar", _epipolar_moved), ("parallax_plane", _plane_moved))
+    for key, move in moves:
+        if cal.get(key) is not None:
+            cal[key] = move(cal[key], origins, +1)
     p = method(crops[0], crops[1], seeds=points, roi=roi, params=params, calibration=cal)
     out = dict(p.calibration)
-    if out.get("epipolar") is not None:
-        out["epipolar"] = _epipolar_moved(out["epipolar"], origins, -1)
+    for key, move in moves:
+        if out.get(key) is not None:
+            out[key] = move(out[key], origins, -1)
     return ({"x1_px": p.x1_px, "y1_px": p.y1_px, "sigma_px": p.sigma_px,
              "sigma_y_px": p.sigma_y_px, "valid": np.asarray(p.valid, bool), "zncc": p.zncc},
             (p.sigma_scale, out))

@@ -160,8 +160,11 @@ class VariationalParams:
     band_window_px: float = 16.0
 
     def margin_px(self):
-        """Pixels around a window that its result depends on (as ``DenseParams``)."""
-        return int(self.margin)
+        """Pixels around a window that its result depends on (as ``DenseParams``): ``margin``,
+        plus three ``band_window_px`` with the band prior (the reach of its structure
+        tensor's window)."""
+        band = self.band_along > 0 or self.band_across != 1
+        return int(self.margin + (np.ceil(3 * self.band_window_px) if band else 0))
 
     # what the tiling (semlab.tiled_stereo.tiled_parallax) asks of a dense method's params
     def dense_method(self):
@@ -176,8 +179,9 @@ class VariationalParams:
     def shared_calibration(self, view0, view1, seeds, calibration):
         """``calibration`` plus what every tile of one tiled map must share: the epipolar
         relation fitted once on all the ``seeds`` (image pixels, :func:`_with_seed_epipolar`;
-        the tiling gives each tile it in its crops' pixels). A variational map normalises
-        its views locally, so no B-spline level.
+        the tiling gives each tile it in its crops' pixels) and the parallax's plane
+        (least squares on the seeds' x-parallax, with three or more). A variational map
+        normalises its views locally, so no B-spline level.
 
         Parameters
         ----------
@@ -268,15 +272,49 @@ def fit_epipolar(x0, y0, x1, y1):
     return e
 
 
+def fit_plane(parallax, valid=None):
+    """Least-squares plane of a parallax map.
+
+    Parameters
+    ----------
+    parallax : (H, W) array
+        x-parallax of every view-0 pixel, pixels (NaN allowed).
+    valid : (H, W) bool array, optional
+        Pixels to fit (default: the finite ones).
+
+    Returns
+    -------
+    (3,) array
+        ``(c0, cx, cy)``: the plane ``c0 + cx x + cy y`` (x, y view-0 pixels); zeros with
+        fewer than three valid pixels.
+    """
+    d = np.asarray(parallax, float)
+    ok = np.isfinite(d) if valid is None else (np.asarray(valid, bool) & np.isfinite(d))
+    yy, xx = np.nonzero(ok)
+    if len(yy) < 3:
+        return np.zeros(3)
+    X = np.column_stack([np.ones(len(yy)), xx, yy]).astype(float)
+    return np.linalg.lstsq(X, d[ok], rcond=None)[0]
+
+
 def _with_seed_epipolar(calibration, seeds):
     """A copy of ``calibration`` with ``"epipolar"`` fitted on ``seeds`` ((N, 2, 2) matches,
-    :func:`fit_epipolar`) when it has none and there are 8 seeds: the sparse matches fix
-    the relation far better than the flow's y."""
+    :func:`fit_epipolar`) when it has none and there are 8 seeds (the sparse matches fix
+    the relation far better than the flow's y), and ``"parallax_plane"`` when it has none
+    and there are 3."""
     cal = dict(calibration or {})
     if cal.get("epipolar") is None and seeds is not None and len(seeds) >= 8:
         sd = np.asarray(seeds, float)
         cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0],
                                        sd[:, 1, 1]).tolist()
+    if cal.get("parallax_plane") is None and seeds is not None:
+        # and the parallax's plane (least squares on the seeds' x-parallax, three or more)
+        sd = np.asarray(seeds, float).reshape(len(seeds), -1)
+        sd = sd[np.all(np.isfinite(sd), axis=1)]
+        if len(sd) >= 3:
+            X = np.column_stack([np.ones(len(sd)), sd[:, 0], sd[:, 1]])
+            cal["parallax_plane"] = np.linalg.lstsq(X, sd[:, 2] - sd[:, 0],
+                                                    rcond=None)[0].tolist()
     return cal
 
 
@@ -539,7 +577,7 @@ def _check_inputs(view0, view1, parallax0, valid0):
 
 # ------------------------------------------------------------------------------ main
 def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=None, params=None,
-                    noise_sigma=None, return_info=False):
+                    noise_sigma=None, return_info=False, plane=None):
     """Variational refinement of the x-parallax of the view-0 pixels of ``roi``.
 
     Parameters
@@ -566,12 +604,18 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         ``parallax0``).
     return_info : bool
         Also return a dict of the measured quantities (prior scale, noise factor, ...).
+    plane : (3,) sequence, optional
+        ``(c0, cx, cy)`` of the parallax's plane ``c0 + cx x0 + cy y0`` (image pixels): the
+        affine part the band prior leaves out (:func:`_prior_weights`); default the
+        least-squares plane of ``parallax0`` where valid (the whole image, so a ``roi``
+        gets the plane of the whole call).
 
     Notes
     -----
     Tiles: the solve of a ``roi`` sees its ``margin_px`` surroundings only; pass one
-    ``epipolar`` and ``noise_sigma`` (and ``params.prior_scale_px``, the ``prior_scale_px``
-    of ``info`` of a representative call) to every tile so they share the calibration.
+    ``epipolar``, ``noise_sigma`` and ``plane`` (and ``params.prior_scale_px``, the
+    ``prior_scale_px`` of ``info`` of a representative call) to every tile so they share the
+    calibration.
 
     Returns
     -------
@@ -620,6 +664,9 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         else:
             epipolar = np.zeros(4)
     e = np.asarray(epipolar, float)
+    plane = np.asarray(fit_plane(p0, ok0) if plane is None else plane, float)
+    if plane.shape != (3,) or not np.all(np.isfinite(plane)):
+        raise SemlabError(f"plane must be 3 finite numbers (c0, cx, cy), got {plane!r}")
     if noise_sigma is None:
         noise_sigma = _grid_noise_sigma(v0, v1, p0, ok0, roi)
     # the solve window: roi + margin in view 0, view 1 cropped around its matches
@@ -641,9 +688,11 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     dx_off, dy_off = float(wx0 - cx0), float(wy0 - cy0)
     ew = np.array([e[0] + e[1] * wx0 + e[2] * wy0 + dy_off - e[3] * dx_off, e[1], e[2], e[3]])
     info = {"epipolar": e.tolist(), "noise_sigma": [float(noise_sigma[0]),
-                                                    float(noise_sigma[1])]}
+                                                    float(noise_sigma[1])],
+            "parallax_plane": plane.tolist()}
     s_init = prm.prior_scale_px
-    dd, var, inside = _solve(n0, s0, n1, s1, d + dx_off, ew, s_init, prm, info)
+    pw = plane[0] + plane[1] * xxw + plane[2] * yyw + dx_off     # in the solve's terms
+    dd, var, inside = _solve(n0, s0, n1, s1, d + dx_off, ew, s_init, prm, info, pw)
     dd = dd - dx_off
     sl = (slice(roi[1] - wy0, roi[3] - wy0), slice(roi[0] - wx0, roi[2] - wx0))
     sig = np.sqrt(var)
@@ -724,22 +773,20 @@ def _band_field(d, window_px):
     return gt, np.clip(coh.ravel(), 0.0, 1.0)
 
 
-def _prior_weights(d, s, prm):
+def _prior_weights(d, s, prm, plane):
     """IRLS weights of the prior at the map ``d`` (Huber with threshold ``prm.smooth_huber``
-    prior scales ``s``), with the band prior of ``prm`` (see :class:`VariationalParams`)."""
+    prior scales ``s``), with the band prior of ``prm`` (see :class:`VariationalParams`) on
+    ``d`` minus ``plane`` (an array of ``d``'s shape)."""
     c = prm.smooth_huber
     wh = _huber_w(_diff(d, 1) / s, c) / s ** 2
     wv = _huber_w(_diff(d, 0) / s, c) / s ** 2
     if prm.band_along <= 0 and prm.band_across == 1:
         return _Prior(wh, wv)
-    # the bands are in the relief: the parallax minus its least-squares plane (the affine
-    # part every pixel has from the camera geometry, e.g. a 0/+8° pair's x-scale, would
-    # otherwise give the whole map one "band" direction across x, and a pull on its slope)
+    # the bands are in the relief: the parallax minus its plane (the affine part every pixel
+    # has from the camera geometry, e.g. a 0/+8° pair's x-scale, would otherwise give the
+    # whole map one "band" direction across x, and a pull on its slope); one plane for the
+    # whole call (or tiled map: its calibration), not the window's, so tiles agree
     hgt, wid = d.shape
-    yy, xx = np.mgrid[0:hgt, 0:wid]
-    X = np.column_stack([np.ones(d.size), xx.ravel() - wid / 2, yy.ravel() - hgt / 2])
-    ok = np.isfinite(d.ravel())
-    plane = (X @ np.linalg.lstsq(X[ok], d.ravel()[ok], rcond=None)[0]).reshape(d.shape)
     gt, coh = _band_field(d - plane, prm.band_window_px)
     c2 = np.ones(d.shape)
     c2[:-1, :-1] = coh.reshape(hgt - 1, wid - 1) ** 2
@@ -769,7 +816,7 @@ def _sample_variance(D, weights, prm, rng, n, prior=True):
     return acc / max(int(n), 1), solve
 
 
-def _solve(n0, s0, n1, s1, d, e, s, prm, info):
+def _solve(n0, s0, n1, s1, d, e, s, prm, info, plane):
     """IRLS minimisation from the initial map, then the variance of the estimate."""
     lv = _Pair(n0, s0, n1, s1, prm.grad_sigma_px)
     dl = d.copy()
@@ -790,7 +837,7 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
             wd = np.where(inside, _huber_w(rl / (k * sig), prm.data_huber)
                           / (k * sig) ** 2, 0.0)
             D = wd * J * J
-            pw = _prior_weights(dl, s, prm)
+            pw = _prior_weights(dl, s, prm, plane)
             # solved for the step from the current map, so that the tolerance is relative to
             # the step (not to the whole parallax): ``step_tol`` before the last solve (an
             # inexact Newton step, the next linearisation corrects it), ``cg_tol`` for it
@@ -803,7 +850,7 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info):
     wd = np.where(inside, _huber_w(r0 / (k * sig), prm.data_huber) / (k * sig) ** 2, 0.0)
     D = wd * J * J
     post = prm.sigma_mode.startswith("posterior")
-    weights = _prior_weights(dl, s, prm)
+    weights = _prior_weights(dl, s, prm, plane)
     var, solve = _sample_variance(D, weights, prm, rng, prm.n_samples, post)
     if prm.sigma_mode in ("noise+bias", "posterior+bias"):
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂; the
@@ -838,9 +885,10 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
     guess : (H, W, 2) array or the tuple of ``initial_guess``, optional
         View-1 positions of every view-0 pixel (whole-image grid); overrides the flow.
     calibration : dict, optional
-        ``noise_sigma`` (2,), ``epipolar`` (4,), ``prior_scale_px``: shared between tiles;
-        missing ones are measured (the epipolar relation from ``seeds`` when there are 8,
-        else from the flow; the prior scale in the call's window).
+        ``noise_sigma`` (2,), ``epipolar`` (4,), ``prior_scale_px``, ``parallax_plane``
+        (3,): shared between tiles; missing ones are measured (the epipolar relation from
+        ``seeds`` when there are 8, else from the flow; the prior scale in the call's window;
+        the plane from the initial guess, :func:`fit_plane`).
     progress : bool
         Unused (the signature of ``dense_parallax``).
 
@@ -886,6 +934,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
     par, sig, valid, info = refine_parallax(view0, view1, p0, np.all(np.isfinite(p0), -1),
                                             epipolar=cal.get("epipolar"), roi=roi, params=prm,
                                             noise_sigma=cal.get("noise_sigma"),
+                                            plane=cal.get("parallax_plane"),
                                             return_info=True)
     roi = _check_roi(roi, v0.shape)
     gx, gy = xx[roi[1]:roi[3], roi[0]:roi[2]], yy[roi[1]:roi[3], roi[0]:roi[2]]
@@ -893,7 +942,8 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
     nanv = lambda a: np.where(valid, a, np.nan)  # noqa: E731
     zncc = info.pop("_zncc")
     cal.update({k: np.asarray(v).tolist() for k, v in info.items()
-                if k in ("noise_sigma", "epipolar", "prior_scale_px", "noise_factor")})
+                if k in ("noise_sigma", "epipolar", "prior_scale_px", "noise_factor",
+                         "parallax_plane")})
     return DenseParallax(x1_px=nanv(gx + par),
                          y1_px=nanv(gy + e[0] + e[1] * gx + e[2] * gy + e[3] * par),
                          sigma_px=sig, sigma_y_px=nanv(np.abs(e[3]) * sig), valid=valid,

@@ -8,6 +8,7 @@ import pytest
 
 import semlab
 from semlab import analysis, pipeline, series
+from semlab.variational import VariationalParams
 
 
 @pytest.fixture(scope="module")
@@ -90,11 +91,18 @@ def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monk
 
     monkeypatch.setattr(pipeline, "match_views", spy)
     fixed = semlab.Analysis(exp, out.parent / "fixed", n_boot=0, stereo_target_sigma_px="none",
-                            stereo_grid_target_sigma_px=0.05, heightmap=False, progress=False)
+                            stereo_grid_target_sigma_px=0.05, map_prior="band",
+                            heightmap=False, progress=False)
     res = fixed.stereo()
     assert fixed.computed == ["stereo"]
-    assert seen == [({"target_sigma_px": None}, {"target_sigma_px": 0.05})]
+    assert seen == [({"target_sigma_px": None},
+                     {"target_sigma_px": 0.05,
+                      "variational_params": fixed.config.variational_params()})]
     assert res.calibration["auto_match_params"]["target_sigma_px"] == 0.05
+    # stage 9's maps with the configured prior, recorded
+    assert res.calibration["auto_match_params"]["variational_params"]["band_along"] == 30
+    assert (cal["auto_match_params"]["variational_params"]["band_along"]
+            == VariationalParams().band_along)
 
 
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,

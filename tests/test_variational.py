@@ -72,7 +72,9 @@ def test_sigma_covers_the_error(flat_low_texture):
     assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
 
 
-@pytest.mark.parametrize("band", [{}, {"band_along": 30.0, "band_across": 4.0}])
+@pytest.mark.parametrize("band", [{"band_along": 0.0, "band_across": 1.0},
+                                  {"band_along": 30.0, "band_across": 4.0}],
+                         ids=["isotropic", "band"])
 def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band):
     # with the band prior the multigrid is smoothed aggregation (not an M-matrix)
     v0, v1, true, sub, x = flat_low_texture
@@ -93,7 +95,7 @@ def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band)
     # its σ (~0.05 px here)
     par_i, _, _ = va.refine_parallax(v0, v1, p0, params=va.VariationalParams(**band))
     assert 0 < np.nanmax(np.abs(par_i - par_c)[inner]) < 1e-2
-    if band:
+    if band["band_along"] > 0:    # the rest (the isotropic system's solvers) once
         return
     # the exact solve of A x = b
     rng = np.random.default_rng(0)
@@ -104,12 +106,19 @@ def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band)
     assert np.abs(D * xs + prior.apply(xs) - b).max() < 1e-10
 
 
-def test_roi_is_a_window_of_the_whole_map(flat_low_texture):
+BAND = {"band_along": 30.0, "band_across": 4.0}
+
+
+@pytest.mark.parametrize("band", [{}, BAND], ids=["isotropic", "band"])
+def test_roi_is_a_window_of_the_whole_map(flat_low_texture, band):
+    # with the band prior the margin grows by the reach of its structure tensor, and the
+    # plane it leaves out is the whole call's (without either: 0.051 px here)
     v0, v1, true, sub, x = flat_low_texture
     p0 = np.where(sub.valid, sub.x1_px - x, np.nan)
-    whole, _, wv = va.refine_parallax(v0, v1, p0)
+    prm = va.VariationalParams(**band)
+    whole, _, wv = va.refine_parallax(v0, v1, p0, params=prm)
     roi = (40, 30, 90, 70)
-    par, sig, valid = va.refine_parallax(v0, v1, p0, roi=roi)
+    par, sig, valid = va.refine_parallax(v0, v1, p0, roi=roi, params=prm)
     assert par.shape == (40, 50) and valid.all()
     # the margin keeps the window close to the whole-image solution
     assert np.nanmax(np.abs(par - whole[30:70, 40:90])) < 0.05
@@ -172,13 +181,26 @@ def test_analysis_config_selects_the_method():
     assert semlab.AnalysisConfig().heightmap_method == "variational"   # since 2026-12-05
     with pytest.raises(SemlabError, match="heightmap_method"):
         semlab.AnalysisConfig(heightmap_method="deepflow")
+    # the maps' prior: one setting for the height map and stage 9's maps (a stereo setting,
+    # so the cache of the heights and of the map both change with it)
+    band = semlab.AnalysisConfig(map_prior="band")
+    assert band.variational_params() == va.VariationalParams(band_along=30.0, band_across=4.0)
+    assert semlab.AnalysisConfig().map_prior == "isotropic"     # (the band prior: opt-in)
+    assert semlab.AnalysisConfig().variational_params() == va.VariationalParams()
+    assert band.for_step("heightmap")["map_prior"] == band.for_step("stereo")["map_prior"]
+    with pytest.raises(SemlabError, match="map_prior"):
+        semlab.AnalysisConfig(map_prior="anisotropic")
 
 
-def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair):
+@pytest.mark.parametrize("band", [{}, BAND], ids=["isotropic", "band"])
+def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair, band):
+    # with the band prior every tile leaves out one plane, the calibration's (each tile's own
+    # least-squares plane: 0.36 px apart at the 95th percentile here)
     from semlab import tiled_stereo as ts
 
     i0, i1, _, _ = scene_pair
-    whole = va.variational_parallax(i0, i1)
+    prm = va.VariationalParams(**band)
+    whole = va.variational_parallax(i0, i1, params=prm)
     cal = {k: whole.calibration[k] for k in ("prior_scale_px", "epipolar", "noise_sigma")}
     calls = []
 
@@ -187,7 +209,7 @@ def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair):
         return va.variational_parallax(*a, **kw)
 
     # the variational map's own tile size (not the subset map's dense_tile_px)
-    tp = ts.tiled_parallax(i0, i1, params=va.VariationalParams(), method=method,
+    tp = ts.tiled_parallax(i0, i1, params=prm, method=method,
                            tiling=ts.TilingParams(min_pixels=0, dense_tile_px=512,
                                                   variational_tile_px=64),
                            calibration=cal, progress=False)
@@ -319,7 +341,7 @@ def test_band_prior_resolves_a_narrow_ribbon_the_isotropic_prior_rounds():
     p0 = g[..., 0] - xx
     inner = (slice(14, -14), slice(14, -14))
     rms = {}
-    for name, prm in (("isotropic", va.VariationalParams()),
+    for name, prm in (("isotropic", va.VariationalParams(band_along=0.0, band_across=1.0)),
                       ("band", va.VariationalParams(band_along=30.0, band_across=4.0))):
         par, sig, valid = va.refine_parallax(v0, v1, p0, params=prm)
         rms[name] = float(np.sqrt(np.nanmean((par - true)[inner] ** 2)))
