@@ -377,6 +377,7 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         if j == st.ref:
             continue
         view = _stage_prior(st, j, features)
+        st.affine[j] = view.M
         if st.work is None:
             _stage_texture(st, view)
         if len(st.work) == 0:       # every point flagged "low texture"
@@ -423,6 +424,7 @@ class _AutoState:
     resid: dict = field(default_factory=dict)      # view -> (parallax, cross-parallax)
     e_dir: dict = field(default_factory=dict)      # view -> unit parallax direction
     curved: set = field(default_factory=set)       # views matched with the dense prior
+    affine: dict = field(default_factory=dict)     # view -> its global affine map (2, 3)
     ref_cache: dict = field(default_factory=dict)
     fwd_state: dict = field(default_factory=dict)  # view -> state of the backward check
     model_x: np.ndarray = None  # (n, v) model error
@@ -833,8 +835,14 @@ def _stage_variational(st):
                              & np.all(np.isfinite(st.out[:, j]), axis=1))
         if len(idx) < 8:        # the map's epipolar relation needs 8 seeds
             continue
+        # the map's plane (the band prior leaves it out): the global affine map's
+        # x-parallax, which a tile of tiled_auto_match fits from the whole views' features
+        # as the untiled run does, so the two agree (each tile's seeds would give its own)
+        M = st.affine[j]
+        plane = [float(M[0, 2]), float(M[0, 0] - 1.0), float(M[0, 1])]
         dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
-                              st.params.variational_params)
+                              st.params.variational_params,
+                              calibration={"parallax_plane": plane})
         xy1, s1 = fusion.sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
         # subset match by more than 3σ of the two (a tall object's hundreds of pixels of
@@ -892,7 +900,7 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
     return np.column_stack(cols) if cols else None
 
 
-def _variational_map(view0, view1, seeds, params, tiling=None):
+def _variational_map(view0, view1, seeds, params, tiling=None, calibration=None):
     """Stage 9's variational parallax map of a view pair, seeded by ``seeds`` ((N, 2, 2)
     matches). Views of more than ``tiling.map_min_pixels`` pixels (default
     :data:`~semlab.tiled_stereo.DEFAULT_TILING`: the size above which a height map is tiled)
@@ -913,9 +921,10 @@ def _variational_map(view0, view1, seeds, params, tiling=None):
     t = tiling or DEFAULT_TILING
     prm = params or VariationalParams()
     if not t.tiles_map(np.shape(view0)):
-        return variational_parallax(view0, view1, seeds=seeds, params=prm)
+        return variational_parallax(view0, view1, seeds=seeds, params=prm,
+                                    calibration=calibration)
     return tiled_parallax(view0, view1, seeds=seeds, params=prm, method=variational_parallax,
-                          tiling=t, scheduler=INLINE, progress=False)
+                          tiling=t, scheduler=INLINE, progress=False, calibration=calibration)
 
 
 def _stage_result(st, progress):

@@ -759,13 +759,20 @@ def test_variational_stage_takes_its_map_parameters(monkeypatch):
     real = va.variational_parallax
 
     def spy(*a, **k):
-        seen.append(k.get("params"))
+        seen.append((k.get("params"), k.get("calibration")))
         return real(*a, **k)
     monkeypatch.setattr(va, "variational_parallax", spy)
     vp = va.VariationalParams(norm_sigma_px=4.0)
     m = auto_match(ims, spacing_px=8, progress=False, variational_params=vp)
-    assert seen == [vp] and m.params.variational_params == vp
+    assert [s[0] for s in seen] == [vp] and m.params.variational_params == vp
     assert asdict(m.params)["variational_params"]["norm_sigma_px"] == 4.0
+    # the map's plane is the global affine map's x-parallax (what a tile of tiled_auto_match
+    # fits as the untiled run does), not the seeds' own: the points' mean parallax
+    c0, cx, cy = seen[0][1]["parallax_plane"]
+    v = m.only_valid()
+    d = v.pts[:, 1, 0] - v.pts[:, 0, 0] - (c0 + cx * v.pts[:, 0, 0] + cy * v.pts[:, 0, 1])
+    assert np.percentile(d, 5) < 0 < np.percentile(d, 95), np.percentile(d, [5, 50, 95])
+    assert abs(cx) < 0.01 and abs(cy) < 0.01          # ±5°: no x-scale, no shear
     with pytest.raises(SemlabError, match="variational_params must be"):
         auto_match(ims, spacing_px=8, progress=False, variational_params={"norm_sigma_px": 4})
 
