@@ -345,8 +345,8 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         within 1σ (``benchmarks/results/accuracy_matrix_band.md``). It costs one variational
         map per view pair: ``auto_match`` took 3–5× as long with the isotropic prior (single
         thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
-        ``run_stereo`` 34 → 182 s), and the band prior makes the map ~3× slower again (the
-        demo pair's map 9.9 → 31.7 s, 2026-12-06). The map's σ is
+        ``run_stereo`` 34 → 182 s), and the band prior makes the map ~2.5× slower again (the
+        demo pair's map 6–8 → 16–19 s, 2026-12-06, after 747e202). The map's σ is
         scaled (k ≥ 1): with three or more views by how well the average predicts each
         other view's subset matches (:func:`semlab.fusion.held_out_scale`), with two by its
         agreement with the subset matches (:func:`semlab.fusion.agreement_scale`; 1 on every

@@ -888,7 +888,8 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
         ``noise_sigma`` (2,), ``epipolar`` (4,), ``prior_scale_px``, ``parallax_plane``
         (3,): shared between tiles; missing ones are measured (the epipolar relation from
         ``seeds`` when there are 8, else from the flow; the prior scale in the call's window;
-        the plane from the initial guess, :func:`fit_plane`).
+        the plane from the seeds when there are 3, else from the initial guess,
+        :func:`fit_plane`).
     progress : bool
         Unused (the signature of ``dense_parallax``).
 
