@@ -113,14 +113,15 @@ class AnalysisConfig:
         textured surfaces the subset map measures 25–72 % of the pixels, at 1.3–1.9×
         DeepFlow's height error on them, where the variational map measures every pixel at
         0.77–0.86×; on speckle the two are alike (0.60–0.79× against 0.54–0.79×).
-    map_prior : {"isotropic", "band"}
+    map_prior : {"band", "isotropic"}
         The prior of every variational parallax map (the height map's and those stage 9 of
-        the automatic matching averages with its subset matches): ``"isotropic"`` (default)
-        smooths alike in every direction; ``"band"`` pools the data along the local
-        direction of straight slip bands (``VariationalParams(band_along=30,
-        band_across=4)``: 0.33–0.66× DeepFlow's height error on the 16 textured two-view
-        cells of the accuracy matrix where the default gives 0.69–1.00×, at ~2.5× the map's
-        time; README, "Accuracy and speed").
+        the automatic matching averages with its subset matches): ``"band"`` (default since
+        2026-12-06) pools the data along the local direction of straight slip bands
+        (``VariationalParams()``, :class:`semlab.variational.VariationalParams`:
+        0.33–0.66× DeepFlow's height error on the 16 textured two-view cells of the accuracy
+        matrix where the isotropic prior gives 0.69–1.00×, at ~2.5× the map's time; README,
+        "Accuracy and speed"); ``"isotropic"`` smooths alike in every direction (the
+        default before; ``VariationalParams(**semlab.variational.ISOTROPIC)``).
     """
 
     stereo_method: str | None = None
@@ -134,7 +135,7 @@ class AnalysisConfig:
     heightmap: bool = True
     heightmap_roi: tuple | None = None
     heightmap_method: str = "variational"
-    map_prior: str = "isotropic"
+    map_prior: str = "band"
 
     def __post_init__(self):
         if self.heightmap_roi is not None:
@@ -179,10 +180,10 @@ class AnalysisConfig:
 
     def variational_params(self):
         """The :class:`semlab.variational.VariationalParams` of ``map_prior``."""
-        from .variational import VariationalParams
+        from .variational import ISOTROPIC, VariationalParams
 
-        if self.map_prior == "band":
-            return VariationalParams(band_along=30.0, band_across=4.0)
+        if self.map_prior == "isotropic":
+            return VariationalParams(**ISOTROPIC)
         return VariationalParams()
 
     @property

@@ -339,9 +339,9 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         textures; low and realistic noise; ±5° and 0/+8°), at the same points: height RMSE
         0.68–0.97× OpenCV DeepFlow's where the subset matches alone are 0.76–1.32× (better
         on fifteen) and the variational map alone 0.77–1.11× (better on thirteen), with 66–81 %
-        of the errors within 1σ and 91–97 % within 2σ. With the map's band prior (the
-        opt-in ``variational_params=VariationalParams(band_along=30, band_across=4)``):
-        0.33–0.66× DeepFlow on all sixteen, 94–99 % within 2σ, 74–87 %
+        of the errors within 1σ and 91–97 % within 2σ (the isotropic prior,
+        ``VariationalParams(**ISOTROPIC)``). With the map's band prior (the default since
+        2026-12-06): 0.33–0.66× DeepFlow on all sixteen, 94–99 % within 2σ, 74–87 %
         within 1σ (``benchmarks/results/accuracy_matrix_band.md``). It costs one variational
         map per view pair: ``auto_match`` took 3–5× as long with the isotropic prior (single
         thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's

@@ -50,8 +50,8 @@ from .errors import ImageError, SemlabError
 from .noise import with_seed_noise
 from .stats import robust_sd
 
-__all__ = ["VariationalParams", "normalise_local", "fit_epipolar", "refine_parallax",
-           "variational_parallax"]
+__all__ = ["VariationalParams", "ISOTROPIC", "normalise_local", "fit_epipolar", "fit_plane",
+           "refine_parallax", "variational_parallax"]
 
 
 @dataclass(frozen=True)
@@ -126,11 +126,14 @@ class VariationalParams:
         from the data of a strip along it, so it needs less smoothing across. The direction
         is that of the map minus its least-squares plane (the affine part the camera
         geometry gives every pixel, e.g. a 0/+8° pair's x-scale, is no band), and the band
-        term acts on that difference. ``0`` / ``1`` (the default): the isotropic prior alone.
-        Opt-in: ``band_along=30, band_across=4`` (with ``band_window_px=16``) were chosen on one cell of
-        ``benchmarks/accuracy_matrix.py`` (polished, realistic noise, ±5°; six settings)
-        and then measured on all 16 textured two-view cells, the 8 dense-map scenes and the
-        real four-view series (not the three-view cells; docs/accuracy.md, "The band prior").
+        term acts on that difference. ``0`` / ``1``: the isotropic prior alone
+        (:data:`ISOTROPIC`). The defaults ``band_along=30, band_across=4`` (with
+        ``band_window_px=16``; default since 2026-12-06, opt-in before) were chosen on one
+        cell of ``benchmarks/accuracy_matrix.py`` (polished, realistic noise, ±5°; six
+        settings) and then measured on all 16 textured two-view cells, the four three-view
+        cells, the 8 dense-map scenes and the real four-view series: about half the height
+        error of the isotropic prior on the textured cells, at ~2.5× its time
+        (docs/accuracy.md, "The band prior").
     band_window_px : float
         Gaussian σ (pixels) over which the structure tensor is averaged (its inner scale, the
         smoothing of the map before its gradient, is 1.5 px).
@@ -155,16 +158,20 @@ class VariationalParams:
     prior_window_px: int = 15
     sigma_mode: str = "posterior+bias"
     solver: str = "amg"
-    band_along: float = 0.0
-    band_across: float = 1.0
+    band_along: float = 30.0
+    band_across: float = 4.0
     band_window_px: float = 16.0
+
+    @property
+    def has_band(self):
+        """Whether the band prior is on (``band_along > 0`` or ``band_across != 1``)."""
+        return self.band_along > 0 or self.band_across != 1
 
     def margin_px(self):
         """Pixels around a window that its result depends on (as ``DenseParams``): ``margin``,
         plus three ``band_window_px`` with the band prior (the reach of its structure
         tensor's window)."""
-        band = self.band_along > 0 or self.band_across != 1
-        return int(self.margin + (np.ceil(3 * self.band_window_px) if band else 0))
+        return int(self.margin + (np.ceil(3 * self.band_window_px) if self.has_band else 0))
 
     # what the tiling (semlab.tiled_stereo.tiled_parallax) asks of a dense method's params
     def dense_method(self):
@@ -178,7 +185,7 @@ class VariationalParams:
 
     def shared_calibration(self, view0, view1, seeds, calibration):
         """``calibration`` plus what every tile of one tiled map must share: the epipolar
-        relation fitted once on all the ``seeds`` (image pixels, :func:`_with_seed_epipolar`;
+        relation fitted once on all the ``seeds`` (image pixels, :func:`_with_seed_calibration`;
         the tiling gives each tile it in its crops' pixels) and the parallax's plane
         (least squares on the seeds' x-parallax, with three or more). A variational map
         normalises its views locally, so no B-spline level.
@@ -195,10 +202,14 @@ class VariationalParams:
         dict
             A copy.
         """
-        return _with_seed_epipolar(calibration, seeds)
+        return _with_seed_calibration(calibration, seeds)
 
 
 # ------------------------------------------------------------------------------ helpers
+#: The isotropic prior alone (the band prior off): ``VariationalParams(**ISOTROPIC)``.
+ISOTROPIC = {"band_along": 0.0, "band_across": 1.0}
+
+
 def normalise_local(img, sigma_px, noise_sigma=None):
     """Locally normalised image ``(I − μ) / s`` and the noise σ of its pixels.
 
@@ -272,6 +283,15 @@ def fit_epipolar(x0, y0, x1, y1):
     return e
 
 
+def _lsq_plane(x, y, values):
+    """``(c0, cx, cy)`` of the least-squares plane ``c0 + cx x + cy y`` through ``values``
+    at the points ``(x, y)`` (1-D arrays); zeros with fewer than three points."""
+    if len(values) < 3:
+        return np.zeros(3)
+    X = np.column_stack([np.ones(len(values)), x, y]).astype(float)
+    return np.linalg.lstsq(X, np.asarray(values, float), rcond=None)[0]
+
+
 def fit_plane(parallax, valid=None):
     """Least-squares plane of a parallax map.
 
@@ -291,30 +311,24 @@ def fit_plane(parallax, valid=None):
     d = np.asarray(parallax, float)
     ok = np.isfinite(d) if valid is None else (np.asarray(valid, bool) & np.isfinite(d))
     yy, xx = np.nonzero(ok)
-    if len(yy) < 3:
-        return np.zeros(3)
-    X = np.column_stack([np.ones(len(yy)), xx, yy]).astype(float)
-    return np.linalg.lstsq(X, d[ok], rcond=None)[0]
+    return _lsq_plane(xx, yy, d[ok])
 
 
-def _with_seed_epipolar(calibration, seeds):
+def _with_seed_calibration(calibration, seeds):
     """A copy of ``calibration`` with ``"epipolar"`` fitted on ``seeds`` ((N, 2, 2) matches,
     :func:`fit_epipolar`) when it has none and there are 8 seeds (the sparse matches fix
-    the relation far better than the flow's y), and ``"parallax_plane"`` when it has none
-    and there are 3."""
+    the relation far better than the flow's y), and ``"parallax_plane"`` (the seeds'
+    x-parallax's plane, :func:`_lsq_plane`) when it has none and there are 3."""
     cal = dict(calibration or {})
     if cal.get("epipolar") is None and seeds is not None and len(seeds) >= 8:
         sd = np.asarray(seeds, float)
         cal["epipolar"] = fit_epipolar(sd[:, 0, 0], sd[:, 0, 1], sd[:, 1, 0],
                                        sd[:, 1, 1]).tolist()
     if cal.get("parallax_plane") is None and seeds is not None:
-        # and the parallax's plane (least squares on the seeds' x-parallax, three or more)
         sd = np.asarray(seeds, float).reshape(len(seeds), -1)
         sd = sd[np.all(np.isfinite(sd), axis=1)]
         if len(sd) >= 3:
-            X = np.column_stack([np.ones(len(sd)), sd[:, 0], sd[:, 1]])
-            cal["parallax_plane"] = np.linalg.lstsq(X, sd[:, 2] - sd[:, 0],
-                                                    rcond=None)[0].tolist()
+            cal["parallax_plane"] = _lsq_plane(sd[:, 0], sd[:, 1], sd[:, 2] - sd[:, 0]).tolist()
     return cal
 
 
@@ -608,7 +622,7 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         ``(c0, cx, cy)`` of the parallax's plane ``c0 + cx x0 + cy y0`` (image pixels): the
         affine part the band prior leaves out (:func:`_prior_weights`); default the
         least-squares plane of ``parallax0`` where valid (the whole image, so a ``roi``
-        gets the plane of the whole call).
+        gets the plane of the whole call); unused (and not fitted) without the band prior.
 
     Notes
     -----
@@ -664,7 +678,9 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
         else:
             epipolar = np.zeros(4)
     e = np.asarray(epipolar, float)
-    plane = np.asarray(fit_plane(p0, ok0) if plane is None else plane, float)
+    if plane is None:       # only the band prior uses it (a whole-image fit is not free)
+        plane = fit_plane(p0, ok0) if prm.has_band else np.zeros(3)
+    plane = np.asarray(plane, float)
     if plane.shape != (3,) or not np.all(np.isfinite(plane)):
         raise SemlabError(f"plane must be 3 finite numbers (c0, cx, cy), got {plane!r}")
     if noise_sigma is None:
@@ -688,8 +704,9 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     dx_off, dy_off = float(wx0 - cx0), float(wy0 - cy0)
     ew = np.array([e[0] + e[1] * wx0 + e[2] * wy0 + dy_off - e[3] * dx_off, e[1], e[2], e[3]])
     info = {"epipolar": e.tolist(), "noise_sigma": [float(noise_sigma[0]),
-                                                    float(noise_sigma[1])],
-            "parallax_plane": plane.tolist()}
+                                                    float(noise_sigma[1])]}
+    if prm.has_band:
+        info["parallax_plane"] = plane.tolist()
     s_init = prm.prior_scale_px
     pw = plane[0] + plane[1] * xxw + plane[2] * yyw + dx_off     # in the solve's terms
     dd, var, inside = _solve(n0, s0, n1, s1, d + dx_off, ew, s_init, prm, info, pw)
@@ -780,7 +797,7 @@ def _prior_weights(d, s, prm, plane):
     c = prm.smooth_huber
     wh = _huber_w(_diff(d, 1) / s, c) / s ** 2
     wv = _huber_w(_diff(d, 0) / s, c) / s ** 2
-    if prm.band_along <= 0 and prm.band_across == 1:
+    if not prm.has_band:
         return _Prior(wh, wv)
     # the bands are in the relief: the parallax minus its plane (the affine part every pixel
     # has from the camera geometry, e.g. a 0/+8° pair's x-scale, would otherwise give the
@@ -928,7 +945,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
                               f"positions or the tuple of initial_guess, got shape {g.shape}")
     yy, xx = np.mgrid[0:hgt, 0:wid].astype(float)
     p0 = np.stack([g[..., 0] - xx, g[..., 1] - yy], -1)
-    cal = _with_seed_epipolar(calibration, seeds)     # (a copy)
+    cal = _with_seed_calibration(calibration, seeds)     # (a copy)
     cal = with_seed_noise(cal, view0, view1, seeds)   # the matcher's noise at the seeds
     if cal.get("prior_scale_px") is not None and prm.prior_scale_px is None:
         prm = replace(prm, prior_scale_px=float(cal["prior_scale_px"]))

@@ -91,7 +91,7 @@ def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monk
 
     monkeypatch.setattr(pipeline, "match_views", spy)
     fixed = semlab.Analysis(exp, out.parent / "fixed", n_boot=0, stereo_target_sigma_px="none",
-                            stereo_grid_target_sigma_px=0.05, map_prior="band",
+                            stereo_grid_target_sigma_px=0.05, map_prior="isotropic",
                             heightmap=False, progress=False)
     res = fixed.stereo()
     assert fixed.computed == ["stereo"]
@@ -100,9 +100,9 @@ def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monk
                       "variational_params": fixed.config.variational_params()})]
     assert res.calibration["auto_match_params"]["target_sigma_px"] == 0.05
     # stage 9's maps with the configured prior, recorded
-    assert res.calibration["auto_match_params"]["variational_params"]["band_along"] == 30
+    assert res.calibration["auto_match_params"]["variational_params"]["band_along"] == 0
     assert (cal["auto_match_params"]["variational_params"]["band_along"]
-            == VariationalParams().band_along)
+            == VariationalParams().band_along == 30)
 
 
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,

@@ -55,15 +55,18 @@ def test_tiled_auto_match_equals_untiled(pair):
     assert np.abs(a2.pts[ok, 1] - b2.pts[ok, 1]).max() < 1e-3
     assert np.array_equal(a2.subset_px, b2.subset_px)
     # with stage 9 each tile averages its points with its own variational map, which is
-    # computed on the tile and its halo, so the positions differ slightly from one map of the
-    # whole view (measured: median 0.0009 px, 0.04σ; at most 0.04 px): far inside the σ
+    # computed on the tile and its halo (with the tile's own noise and prior scale), so the
+    # positions differ slightly from one map of the whole view: far inside the σ. The band
+    # prior (the default) reaches 80 px and pools along the bands, so at the run's default
+    # 96 px halo (measured, 2026-12-06: median 0.0020 px, 0.12σ; at most 0.08 px; at a 48 px
+    # halo 0.0037 px, 0.22σ; the isotropic prior at 48 px: 0.0009 px, 0.04σ)
     a3 = auto_match([ref, cur], progress=False, spacing_px=8, smooth_sigma_px=0.0)
-    b3 = tiled_auto_match([ref, cur], tiling=tiling, progress=False, spacing_px=8,
-                          smooth_sigma_px=0.0)
+    b3 = tiled_auto_match([ref, cur], tiling=TilingParams(tile_px=128), progress=False,
+                          spacing_px=8, smooth_sigma_px=0.0)
     assert (a3.valid == b3.valid).mean() >= 0.99
     ok = a3.valid & b3.valid
     d = np.abs(a3.pts[ok, 1] - b3.pts[ok, 1]).max(axis=1)
-    assert np.median(d) < 0.1 * np.median(a3.sigma_px[ok]) and d.max() < 0.1
+    assert np.median(d) < 0.15 * np.median(a3.sigma_px[ok]) and d.max() < 0.1
     # and stage 9 did move the points (the check above is not of two equal runs)
     assert np.median(np.abs(a3.pts[ok, 1] - a.pts[ok, 1]).max(axis=1)) > 1e-3
 

@@ -72,9 +72,7 @@ def test_sigma_covers_the_error(flat_low_texture):
     assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
 
 
-@pytest.mark.parametrize("band", [{"band_along": 0.0, "band_across": 1.0},
-                                  {"band_along": 30.0, "band_across": 4.0}],
-                         ids=["isotropic", "band"])
+@pytest.mark.parametrize("band", [va.ISOTROPIC, {}], ids=["isotropic", "band"])
 def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band):
     # with the band prior the multigrid is smoothed aggregation (not an M-matrix)
     v0, v1, true, sub, x = flat_low_texture
@@ -95,7 +93,7 @@ def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band)
     # its σ (~0.05 px here)
     par_i, _, _ = va.refine_parallax(v0, v1, p0, params=va.VariationalParams(**band))
     assert 0 < np.nanmax(np.abs(par_i - par_c)[inner]) < 1e-2
-    if band["band_along"] > 0:    # the rest (the isotropic system's solvers) once
+    if band != va.ISOTROPIC:    # the rest (the isotropic system's solvers) once
         return
     # the exact solve of A x = b
     rng = np.random.default_rng(0)
@@ -106,10 +104,7 @@ def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band)
     assert np.abs(D * xs + prior.apply(xs) - b).max() < 1e-10
 
 
-BAND = {"band_along": 30.0, "band_across": 4.0}
-
-
-@pytest.mark.parametrize("band", [{}, BAND], ids=["isotropic", "band"])
+@pytest.mark.parametrize("band", [va.ISOTROPIC, {}], ids=["isotropic", "band"])
 def test_roi_is_a_window_of_the_whole_map(flat_low_texture, band):
     # with the band prior the margin grows by the reach of its structure tensor, and the
     # plane it leaves out is the whole call's (without either: 0.051 px here)
@@ -183,16 +178,19 @@ def test_analysis_config_selects_the_method():
         semlab.AnalysisConfig(heightmap_method="deepflow")
     # the maps' prior: one setting for the height map and stage 9's maps (a stereo setting,
     # so the cache of the heights and of the map both change with it)
-    band = semlab.AnalysisConfig(map_prior="band")
-    assert band.variational_params() == va.VariationalParams(band_along=30.0, band_across=4.0)
-    assert semlab.AnalysisConfig().map_prior == "isotropic"     # (the band prior: opt-in)
+    iso = semlab.AnalysisConfig(map_prior="isotropic")
+    assert iso.variational_params() == va.VariationalParams(band_along=0.0, band_across=1.0)
+    assert not iso.variational_params().has_band
+    assert semlab.AnalysisConfig().map_prior == "band"     # (since 2026-12-06)
     assert semlab.AnalysisConfig().variational_params() == va.VariationalParams()
-    assert band.for_step("heightmap")["map_prior"] == band.for_step("stereo")["map_prior"]
+    assert va.VariationalParams().has_band
+    assert iso.for_step("heightmap")["map_prior"] == iso.for_step("stereo")["map_prior"]
+    assert iso.for_step("stereo") != semlab.AnalysisConfig().for_step("stereo")
     with pytest.raises(SemlabError, match="map_prior"):
         semlab.AnalysisConfig(map_prior="anisotropic")
 
 
-@pytest.mark.parametrize("band", [{}, BAND], ids=["isotropic", "band"])
+@pytest.mark.parametrize("band", [va.ISOTROPIC, {}], ids=["isotropic", "band"])
 def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair, band):
     # with the band prior every tile leaves out one plane, the calibration's (each tile's own
     # least-squares plane: 0.36 px apart at the 95th percentile here)
@@ -341,8 +339,8 @@ def test_band_prior_resolves_a_narrow_ribbon_the_isotropic_prior_rounds():
     p0 = g[..., 0] - xx
     inner = (slice(14, -14), slice(14, -14))
     rms = {}
-    for name, prm in (("isotropic", va.VariationalParams(band_along=0.0, band_across=1.0)),
-                      ("band", va.VariationalParams(band_along=30.0, band_across=4.0))):
+    for name, prm in (("isotropic", va.VariationalParams(**va.ISOTROPIC)),
+                      ("band", va.VariationalParams())):
         par, sig, valid = va.refine_parallax(v0, v1, p0, params=prm)
         rms[name] = float(np.sqrt(np.nanmean((par - true)[inner] ** 2)))
     assert rms["band"] < 0.8 * rms["isotropic"], rms
