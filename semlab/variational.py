@@ -42,6 +42,7 @@ half-open in view-0 pixels (see :mod:`semlab.heightmap`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import numpy as np
 from scipy import ndimage
@@ -206,8 +207,9 @@ class VariationalParams:
 
 
 # ------------------------------------------------------------------------------ helpers
-#: The isotropic prior alone (the band prior off): ``VariationalParams(**ISOTROPIC)``.
-ISOTROPIC = {"band_along": 0.0, "band_across": 1.0}
+#: The isotropic prior alone (the band prior off): ``VariationalParams(**ISOTROPIC)``
+#: (read-only, so no caller changes it for the others).
+ISOTROPIC = MappingProxyType({"band_along": 0.0, "band_across": 1.0})
 
 
 def normalise_local(img, sigma_px, noise_sigma=None):
