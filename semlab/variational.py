@@ -285,13 +285,26 @@ def fit_epipolar(x0, y0, x1, y1):
     return e
 
 
+def _plane_from_moments(n, mx, my, cxx, cxy, cyy, mv, cxv, cyv):
+    """``(c0, cx, cy)`` of the least-squares plane from the points' count, means and central
+    second moments (per point) of ``x``, ``y`` and the values ``v``: the 2×2 normal equations
+    of the centred slopes (least norm when the points are collinear)."""
+    if n < 3:
+        return np.zeros(3)
+    cx, cy = np.linalg.lstsq(np.array([[cxx, cxy], [cxy, cyy]]), np.array([cxv, cyv]),
+                             rcond=1e-12)[0]
+    return np.array([mv - cx * mx - cy * my, cx, cy])
+
+
 def _lsq_plane(x, y, values):
     """``(c0, cx, cy)`` of the least-squares plane ``c0 + cx x + cy y`` through ``values``
     at the points ``(x, y)`` (1-D arrays); zeros with fewer than three points."""
-    if len(values) < 3:
+    x, y, v = (np.asarray(a, float).ravel() for a in (x, y, values))
+    if len(v) < 3:
         return np.zeros(3)
-    X = np.column_stack([np.ones(len(values)), x, y]).astype(float)
-    return np.linalg.lstsq(X, np.asarray(values, float), rcond=None)[0]
+    xc, yc, vc = x - x.mean(), y - y.mean(), v - v.mean()
+    return _plane_from_moments(len(v), x.mean(), y.mean(), np.mean(xc * xc), np.mean(xc * yc),
+                               np.mean(yc * yc), v.mean(), np.mean(xc * vc), np.mean(yc * vc))
 
 
 def fit_plane(parallax, valid=None):
@@ -311,9 +324,25 @@ def fit_plane(parallax, valid=None):
         fewer than three valid pixels.
     """
     d = np.asarray(parallax, float)
+    if d.ndim != 2:
+        raise SemlabError(f"fit_plane: parallax must be an (H, W) map, got shape {d.shape}")
     ok = np.isfinite(d) if valid is None else (np.asarray(valid, bool) & np.isfinite(d))
-    yy, xx = np.nonzero(ok)
-    return _lsq_plane(xx, yy, d[ok])
+    n = int(ok.sum())
+    if n < 3:
+        return np.zeros(3)
+    # sums over the pixel grid by rows and columns (no (N, 3) design matrix: a whole 12.6 Mpx
+    # map's would be 0.3 GB), moments taken about the mean pixel for conditioning
+    ix, iy = np.arange(d.shape[1], dtype=float), np.arange(d.shape[0], dtype=float)
+    cols, rows = ok.sum(axis=0), ok.sum(axis=1)
+    mx, my = cols @ ix / n, rows @ iy / n
+    ix, iy = ix - mx, iy - my
+    dz = np.where(ok, d, 0.0)
+    mv = dz.sum() / n
+    dz -= np.where(ok, mv, 0.0)
+    cxx, cyy = cols @ (ix * ix) / n, rows @ (iy * iy) / n
+    cxy = iy @ (ok @ ix) / n
+    cxv, cyv = (dz @ ix).sum() / n, iy @ dz.sum(axis=1) / n
+    return _plane_from_moments(n, mx, my, cxx, cxy, cyy, mv, cxv, cyv)
 
 
 def _with_seed_calibration(calibration, seeds):

@@ -346,3 +346,24 @@ def test_band_prior_resolves_a_narrow_ribbon_the_isotropic_prior_rounds():
     assert rms["band"] < 0.8 * rms["isotropic"], rms
     with pytest.raises(SemlabError, match="band_across"):
         va.refine_parallax(v0, v1, p0, params=va.VariationalParams(band_across=0.5))
+
+
+def test_fit_plane_is_the_least_squares_plane_of_the_valid_pixels():
+    rng = np.random.default_rng(3)
+    hgt, wid = 150, 200
+    yy, xx = np.mgrid[0:hgt, 0:wid]
+    d = 0.3 + 0.01 * xx - 0.02 * yy + 0.05 * rng.standard_normal((hgt, wid))
+    d[rng.random(d.shape) < 0.2] = np.nan
+    valid = rng.random(d.shape) < 0.7
+    d[~valid & np.isfinite(d)] += 50.0        # pixels outside the mask must not count
+    ok = valid & np.isfinite(d)
+    design = np.column_stack([np.ones(ok.sum()), xx[ok], yy[ok]])
+    ref = np.linalg.lstsq(design, d[ok], rcond=None)[0]
+    np.testing.assert_allclose(va.fit_plane(d, valid), ref, rtol=1e-9, atol=1e-12)
+    # collinear pixels (one row): the slope along the row, none across
+    row = np.full((10, 12), np.nan)
+    row[3] = 1.0 + 0.1 * np.arange(12)
+    np.testing.assert_allclose(va.fit_plane(row), [1.0, 0.1, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(va.fit_plane(np.full((5, 5), np.nan)), np.zeros(3))
+    with pytest.raises(SemlabError, match="fit_plane"):
+        va.fit_plane(np.zeros(10))
