@@ -10,6 +10,7 @@ wall). Per part: height RMSE, share of the average's squared error, and the frac
 correlation of the subset match's error with the map's, for fixed and for noise-sized subsets.
 
 Run:  python benchmarks/stage9_walls.py [--cells polished/realistic/-5/5,polished/low/-5/5]
+                                        [--seed 1]
                                         [--var KEY=VALUE ...]  (the maps' VariationalParams)
 """
 
@@ -48,10 +49,10 @@ def _map_at(v0, v1, seeds, p0, mode, vparams):
     return np.stack([p0, xy1], 1), s
 
 
-def run(cell, tmp, vparams):
+def run(cell, tmp, vparams, seed=0):
     regime, noise, t0, t1 = cell.split("/")
     tilts = (float(t0), float(t1))
-    exp = am.make_cell(tmp, regime, noise, tilts)
+    exp = am.make_cell(tmp, regime, noise, tilts, seed=seed)
     v0, v1 = exp.views()[:2]
     fused = am.semlab_heights(exp, "auto", auto={"variational_params": vparams})
     sub = am.semlab_heights(exp, "auto", auto={"variational_fusion": False})
@@ -73,7 +74,7 @@ def run(cell, tmp, vparams):
     pts_s, _ = _map_at(v0, v1, sized.pts, sized.pts[:, 0], "posterior+bias", vparams)
     corr = {"fixed": np.corrcoef(e["subsets"], e["map"])[0, 1],
             "sized": np.corrcoef(_errors(exp, sized.pts, tilts), _errors(exp, pts_s, tilts))[0, 1]}
-    lines = [f"### {cell}", "",
+    lines = [f"### {cell}" + (f", seed {seed}" if seed else ""), "",
              f"{len(p0)} points; correlation of the subset match's error with the map's: fixed "
              f"{corr['fixed']:+.2f}, noise-sized (0.05 px, its own {len(sized.pts)} points) "
              f"{corr['sized']:+.2f}", "",
@@ -96,6 +97,7 @@ def run(cell, tmp, vparams):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cells", default=",".join(CELLS))
+    ap.add_argument("--seed", type=int, default=0, help="the cells' seed (as accuracy_matrix)")
     ap.add_argument("--var", action="append", default=[], metavar="KEY=VALUE",
                     help="a VariationalParams field of the maps (stage 9's and the map "
                     "alone's), e.g. --var norm_sigma_px=5 (repeatable)")
@@ -103,7 +105,7 @@ def main(argv=None):
     vparams = variational_params(args.var)
     with tempfile.TemporaryDirectory() as tmp:
         for cell in args.cells.split(","):
-            print(run(cell, tmp, vparams) + "\n", flush=True)
+            print(run(cell, tmp, vparams, args.seed) + "\n", flush=True)
 
 
 if __name__ == "__main__":
