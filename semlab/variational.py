@@ -285,12 +285,11 @@ def fit_epipolar(x0, y0, x1, y1):
     return e
 
 
-def _plane_from_moments(n, mx, my, cxx, cxy, cyy, mv, cxv, cyv):
-    """``(c0, cx, cy)`` of the least-squares plane from the points' count, means and central
+def _plane_from_moments(mx, my, cxx, cxy, cyy, mv, cxv, cyv):
+    """``(c0, cx, cy)`` of the least-squares plane from the points' means and central
     second moments (per point) of ``x``, ``y`` and the values ``v``: the 2×2 normal equations
-    of the centred slopes (least norm when the points are collinear)."""
-    if n < 3:
-        return np.zeros(3)
+    of the centred slopes (least norm when the points are collinear); the callers ask for
+    three points or more."""
     cx, cy = np.linalg.lstsq(np.array([[cxx, cxy], [cxy, cyy]]), np.array([cxv, cyv]),
                              rcond=1e-12)[0]
     return np.array([mv - cx * mx - cy * my, cx, cy])
@@ -302,9 +301,10 @@ def _lsq_plane(x, y, values):
     x, y, v = (np.asarray(a, float).ravel() for a in (x, y, values))
     if len(v) < 3:
         return np.zeros(3)
-    xc, yc, vc = x - x.mean(), y - y.mean(), v - v.mean()
-    return _plane_from_moments(len(v), x.mean(), y.mean(), np.mean(xc * xc), np.mean(xc * yc),
-                               np.mean(yc * yc), v.mean(), np.mean(xc * vc), np.mean(yc * vc))
+    # (the cross moments need no centred v: the centred coordinates sum to zero)
+    xc, yc = x - x.mean(), y - y.mean()
+    return _plane_from_moments(x.mean(), y.mean(), np.mean(xc * xc), np.mean(xc * yc),
+                               np.mean(yc * yc), v.mean(), np.mean(xc * v), np.mean(yc * v))
 
 
 def fit_plane(parallax, valid=None):
@@ -331,18 +331,18 @@ def fit_plane(parallax, valid=None):
     if n < 3:
         return np.zeros(3)
     # sums over the pixel grid by rows and columns (no (N, 3) design matrix: a whole 12.6 Mpx
-    # map's would be 0.3 GB), moments taken about the mean pixel for conditioning
+    # map's would be 0.3 GB), moments taken about the mean pixel for conditioning (the valid
+    # pixels' centred coordinates sum to zero, so the values need no centring)
     ix, iy = np.arange(d.shape[1], dtype=float), np.arange(d.shape[0], dtype=float)
     cols, rows = ok.sum(axis=0), ok.sum(axis=1)
     mx, my = cols @ ix / n, rows @ iy / n
     ix, iy = ix - mx, iy - my
     dz = np.where(ok, d, 0.0)
     mv = dz.sum() / n
-    dz -= np.where(ok, mv, 0.0)
     cxx, cyy = cols @ (ix * ix) / n, rows @ (iy * iy) / n
     cxy = iy @ (ok @ ix) / n
     cxv, cyv = (dz @ ix).sum() / n, iy @ dz.sum(axis=1) / n
-    return _plane_from_moments(n, mx, my, cxx, cxy, cyy, mv, cxv, cyv)
+    return _plane_from_moments(mx, my, cxx, cxy, cyy, mv, cxv, cyv)
 
 
 def _with_seed_calibration(calibration, seeds):
