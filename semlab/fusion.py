@@ -17,7 +17,9 @@ average beats the subset matches on fifteen of the sixteen accuracy-matrix cells
 (docs/accuracy.md, "Stage 9: the subset matches averaged with the variational map at
 the points"). There the map's σ is scaled where its errors are larger than it says: by
 :func:`held_out_scale` (how well the average predicts a third view) when there is one, by
-:func:`agreement_scale` (how the two disagree) when there is not.
+:func:`agreement_scale` (how the two disagree) when there is not. With two views the weight
+uses the map's noise-plus-bias σ and the average's 1σ its posterior σ
+(:func:`inverse_variance`'s ``weight_sigma_b``).
 """
 
 from __future__ import annotations
@@ -99,7 +101,7 @@ def fuse_heightmaps(subset, variational):
                    notes=list(subset.notes) + [note])
 
 
-def inverse_variance(a, sigma_a, b, sigma_b):
+def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None):
     """Inverse-variance average of two estimates of the same quantities.
 
     Parameters
@@ -108,6 +110,12 @@ def inverse_variance(a, sigma_a, b, sigma_b):
         The two estimates (the same unit, e.g. view-1 positions ``(x, y)`` in pixels).
     sigma_a, sigma_b : (N,) arrays
         Their 1σ (the same unit), one per row.
+    weight_sigma_b : (N,) array, optional
+        ``b``'s 1σ for the weight, when it is not the one its error bar holds to: the weight
+        is then ``σ_b'² / (σ_a² + σ_b'²)`` with this ``σ_b'`` and the average's 1σ
+        ``sqrt(w² σ_a² + (1 − w)² σ_b²)`` with ``sigma_b`` (stage 9 of
+        :func:`semlab.matching.auto_match`: the variational map's noise-plus-bias σ for the
+        weight, its posterior σ for the bar). Default ``sigma_b``.
 
     Returns
     -------
@@ -127,23 +135,29 @@ def inverse_variance(a, sigma_a, b, sigma_b):
     b = np.asarray(b, float)
     sa = np.asarray(sigma_a, float).ravel()
     sb = np.asarray(sigma_b, float).ravel()
-    if a.shape != b.shape or len(sa) != len(a) or len(sb) != len(a):
+    sw = sb if weight_sigma_b is None else np.asarray(weight_sigma_b, float).ravel()
+    if a.shape != b.shape or len(sa) != len(a) or len(sb) != len(a) or len(sw) != len(a):
         raise SemlabError(f"inverse_variance: estimates of shapes {a.shape} and {b.shape} with "
-                          f"{len(sa)} and {len(sb)} σ; give one σ per row of equal-shaped "
-                          "estimates")
+                          f"{len(sa)}, {len(sb)} and {len(sw)} σ; give one σ per row of "
+                          "equal-shaped estimates")
     rows = lambda m: m.reshape(len(m), -1).all(axis=1)  # noqa: E731
     with np.errstate(invalid="ignore"):
         ok_a = rows(np.isfinite(a)) & np.isfinite(sa) & (sa > 0)
-        ok_b = rows(np.isfinite(b)) & np.isfinite(sb) & (sb > 0)
+        ok_b = (rows(np.isfinite(b)) & np.isfinite(sb) & (sb > 0) & np.isfinite(sw)
+                & (sw > 0))
     both = ok_a & ok_b
     # σ outside the rows that use them set to 1, and the ratios in a form that a tiny or a huge
     # σ (a point the map barely constrains) cannot overflow
     sa1 = np.where(ok_a, sa, 1.0)
     sb1 = np.where(ok_b, sb, 1.0)
+    sw1 = np.where(ok_b, sw, 1.0)
     with np.errstate(over="ignore", under="ignore"):
-        wb = np.where(both, 1.0 / (1.0 + (sb1 / sa1) ** 2), np.where(ok_b, 1.0, 0.0))
-        # sqrt(w² σa² + (1 − w)² σb²) = σa σb / hypot(σa, σb), the factor in [1/√2, 1]
-        s_both = np.minimum(sa1, sb1) * (np.maximum(sa1, sb1) / np.hypot(sa1, sb1))
+        wb = np.where(both, 1.0 / (1.0 + (sw1 / sa1) ** 2), np.where(ok_b, 1.0, 0.0))
+        if weight_sigma_b is None:
+            # sqrt(w² σa² + (1 − w)² σb²) = σa σb / hypot(σa, σb), the factor in [1/√2, 1]
+            s_both = np.minimum(sa1, sb1) * (np.maximum(sa1, sb1) / np.hypot(sa1, sb1))
+        else:
+            s_both = np.hypot((1.0 - wb) * sa1, wb * sb1)
     w = wb.reshape((-1,) + (1,) * (a.ndim - 1))
     fused = np.where(w > 0, w * np.nan_to_num(b) + (1 - w) * np.where(w < 1, a, 0.0), a)
     sigma = np.where(both, s_both, np.where(ok_b & ~ok_a, sb, sa))
@@ -252,13 +266,15 @@ def held_out_scale(a, sigma_a, b, sigma_b, c):
     return float(ks[int(np.argmin(loss))])
 
 
-def sample_parallax(dense, pts_px):
+def sample_parallax(dense, pts_px, sigma="sigma_px"):
     """A dense parallax map at view-0 points, bilinearly.
 
     Parameters
     ----------
     dense : semlab.heightmap.DenseParallax
     pts_px : (N, 2) array of view-0 ``(x, y)`` pixels
+    sigma : {"sigma_px", "weight_sigma_px"}
+        Which of the map's 1σ to sample.
 
     Returns
     -------
@@ -268,6 +284,10 @@ def sample_parallax(dense, pts_px):
     sigma : (N,) array
         1σ of ``x1`` (pixels), NaN where ``xy1`` is.
     """
+    if sigma not in ("sigma_px", "weight_sigma_px") or getattr(dense, sigma, None) is None:
+        raise SemlabError(f"sample_parallax: the map has no {sigma!r}; give 'sigma_px', or "
+                          "'weight_sigma_px' of a variational map made with "
+                          "VariationalParams(weight_sigma=True)")
     from scipy import ndimage
 
     p = np.asarray(pts_px, float).reshape(-1, 2)
@@ -278,4 +298,4 @@ def sample_parallax(dense, pts_px):
     ok = ndimage.map_coordinates(np.asarray(dense.valid, float), c, order=1, mode="constant",
                                  cval=0.0) > 0.999
     xy1 = np.where(ok[:, None], np.column_stack([take(dense.x1_px), take(dense.y1_px)]), np.nan)
-    return xy1, np.where(ok, take(dense.sigma_px), np.nan)
+    return xy1, np.where(ok, take(getattr(dense, sigma)), np.nan)

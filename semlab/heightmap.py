@@ -175,6 +175,9 @@ class DenseParallax:
     params : DenseParams
     calibration : dict
         The measured quantities of the call (see :func:`dense_parallax`), to reuse in tiles.
+    weight_sigma_px : (h, w) float array or None
+        A variational map's 1σ of ``x1_px`` for the surface at hand (noise plus the prior's
+        plug-in bias), when asked (``VariationalParams.weight_sigma``); None otherwise.
     """
 
     x1_px: np.ndarray
@@ -187,6 +190,7 @@ class DenseParallax:
     sigma_scale: float
     params: DenseParams
     calibration: dict = field(default_factory=dict)
+    weight_sigma_px: np.ndarray | None = None
 
     def grid(self):
         """View-0 pixel coordinates ``(x0_px, y0_px)`` of the map, two ``(h, w)`` arrays."""

@@ -194,7 +194,11 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        the inverse-variance average of its subset match and that estimate
        (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's), the map's σ
        scaled by the held-out views (three or more: :func:`semlab.fusion.held_out_scale`)
-       or by its agreement with the subsets (two views). The two average
+       or by its agreement with the subsets (two views). With two views the map is
+       weighted by its error for the surface at hand, its noise plus the prior's plug-in
+       bias (``DenseParallax.weight_sigma_px``), and the average's 1σ uses its posterior
+       σ, which also holds the prior's roughness (about twice the error on flat parts with
+       the band prior) and so holds at walls where the plug-in bias does not. The two average
        the relief differently (the subset over its square, the variational map through a
        per-pixel smoothness prior), so their errors are partly independent. Where the two
        disagree by more than 3σ (the map misses a tall object's parallax) the subset match
@@ -818,7 +822,7 @@ def _stage_variational(st):
     average's (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
-    from . import fusion
+    from . import fusion, variational
 
     sig = np.sqrt(st.sig_ap ** 2 + st.model_x ** 2)
     subsets = st.out.copy()     # the subset matches: the held-out estimates of every view
@@ -840,8 +844,14 @@ def _stage_variational(st):
         # as the untiled run does, so the two agree (each tile's seeds would give its own)
         M = st.affine[j]
         plane = [float(M[0, 2]), float(M[0, 0] - 1.0), float(M[0, 1])]
+        # the map's σ scaled (k ≥ 1) where its errors are larger than it says, e.g. relief its
+        # prior flattens: with another view, by how well the average predicts that view's
+        # subset matches (held out: their errors are their own); with two views, by the
+        # map's agreement with the subset matches, whose σ is then taken as calibrated
+        held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
+        vp = st.params.variational_params or variational.VariationalParams()
         dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
-                              st.params.variational_params,
+                              replace(vp, weight_sigma=held is None),
                               calibration={"parallax_plane": plane})
         xy1, s1 = fusion.sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
@@ -851,15 +861,20 @@ def _stage_variational(st):
         with np.errstate(invalid="ignore"):
             off = np.abs(xy1[:, 0] - st.out[idx, j, 0]) > 3 * np.hypot(sig[idx, j], s1)
         xy1[off] = np.nan
-        # the map's σ scaled (k ≥ 1) where its errors are larger than it says, e.g. relief its
-        # prior flattens: with another view, by how well the average predicts that view's
-        # subset matches (held out: their errors are their own); with two views, by the
-        # map's agreement with the subset matches, whose σ is then taken as calibrated
-        held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
-        k = (fusion.held_out_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1, held)
-             if held is not None else
-             fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1))
-        fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1)
+        # The weight: with another view, the posterior σ scaled by the held-out prediction
+        # (the data set the weight); with two views, the map's error for the surface at
+        # hand, its noise plus the prior's plug-in bias (`s1w`; the posterior σ also holds
+        # the prior's roughness, ~2× the flats' error with the band prior, and gave the
+        # subsets too much weight). The average's bar from the posterior σ either way: it
+        # also holds where the plug-in bias misses the smoothing of a band's walls
+        if held is not None:
+            s1w = s1
+            k = fusion.held_out_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1, held)
+        else:
+            s1w = fusion.sample_parallax(dm, st.grid[idx], sigma="weight_sigma_px")[1]
+            k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w)
+        fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1,
+                                                 weight_sigma_b=k * s1w)
         st.out[idx, j] = fused
         used = wv > 0
         st.fused_sig[idx[used], j] = s_f[used]

@@ -510,9 +510,11 @@ def _parallax_tile(crops, roi, points, method, params, calibration, origins):
     for key, move in moves:
         if out.get(key) is not None:
             out[key] = move(out[key], origins, -1)
-    return ({"x1_px": p.x1_px, "y1_px": p.y1_px, "sigma_px": p.sigma_px,
-             "sigma_y_px": p.sigma_y_px, "valid": np.asarray(p.valid, bool), "zncc": p.zncc},
-            (p.sigma_scale, out))
+    arrays = {"x1_px": p.x1_px, "y1_px": p.y1_px, "sigma_px": p.sigma_px,
+              "sigma_y_px": p.sigma_y_px, "valid": np.asarray(p.valid, bool), "zncc": p.zncc}
+    if getattr(p, "weight_sigma_px", None) is not None:
+        arrays["weight_sigma_px"] = p.weight_sigma_px
+    return arrays, (p.sigma_scale, out)
 
 
 def _dense_method(method):
@@ -541,7 +543,8 @@ def _assemble(arrays, origins, plans, roi, params, scales, calibration):
     return DenseParallax(x1_px=x1p, y1_px=y1p, sigma_px=arrays["sigma_px"],
                          sigma_y_px=arrays["sigma_y_px"], valid=valid, zncc=zn, roi=roi,
                          sigma_scale=float(np.median(sc)) if sc else float("nan"),
-                         params=params, calibration=dict(calibration or {}))
+                         params=params, calibration=dict(calibration or {}),
+                         weight_sigma_px=arrays.get("weight_sigma_px"))
 
 
 def _seed_offsets(seeds, default):

@@ -138,6 +138,12 @@ class VariationalParams:
     band_window_px : float
         Gaussian σ (pixels) over which the structure tensor is averaged (its inner scale, the
         smoothing of the map before its gradient, is 1.5 px).
+    weight_sigma : bool
+        Also the 1σ of the estimate for the surface at hand, its noise plus the prior's
+        plug-in bias (``sigma_mode="noise+bias"``), as ``DenseParallax.weight_sigma_px``
+        (with ``sigma_mode="posterior+bias"``: the noise part of each posterior sample solved
+        on its own, ``2 n_samples`` solves instead of ``n_samples``). Stage 9 of
+        :func:`semlab.matching.auto_match` weights the map by it.
     """
 
     warps: int = 5
@@ -162,6 +168,7 @@ class VariationalParams:
     band_along: float = 30.0
     band_across: float = 4.0
     band_window_px: float = 16.0
+    weight_sigma: bool = False
 
     @property
     def has_band(self):
@@ -748,6 +755,8 @@ def refine_parallax(view0, view1, parallax0, valid0=None, epipolar=None, roi=Non
     par = np.where(valid, dd[sl], np.nan)
     sg = np.where(valid, sig[sl], np.nan)
     info["_zncc"] = np.where(valid, info["_zncc"][sl], -1.0)
+    if "_weight_var" in info:
+        info["_weight_sigma"] = np.where(valid, np.sqrt(info.pop("_weight_var")[sl]), np.nan)
     if return_info:
         return par, sg, valid, info
     return par, sg, valid
@@ -844,24 +853,33 @@ def _prior_weights(d, s, prm, plane):
     return _Prior(wh * iso[:, :-1], wv * iso[:-1, :], gt, wt, gp)
 
 
-def _sample_variance(D, weights, prm, rng, n, prior=True):
+def _sample_variance(D, weights, prm, rng, n, prior=True, split=False):
     """Per-pixel variance ``mean(x²)`` of ``n`` perturbation samples
     ``x = A⁻¹ (D^½ n₁ + Gᵀ W^½ n₂)``, ``A = diag(D) + Gᵀ W G``, and the solver of ``A``.
 
     With ``prior`` they are posterior samples, ``x ~ N(0, A⁻¹)``; without (``n₂ = 0``),
     ``x ~ N(0, A⁻¹ D A⁻¹)``, the noise of the estimate for a fixed surface. The squares are
     summed as the samples come (one image in memory, not ``n``: a 1216² tile of stage 9 in
-    tiled matching held twelve).
+    tiled matching held twelve). With ``prior`` and ``split``, the two parts of each sample are
+    solved apart (linear: ``x = x₁ + x₂``), and the noise part's variance is returned too
+    (``(var, var_noise), solve``).
     """
     solve = _linear_solver(D, weights, prm)
     acc = np.zeros(D.shape)
+    acc1 = np.zeros(D.shape) if (prior and split) else None
     for _ in range(int(n)):
         b = np.sqrt(D) * rng.standard_normal(D.shape)
-        if prior:
-            b += weights.sample(rng, D.shape)
-        x = solve(b, rtol=prm.sample_tol)
+        if acc1 is not None:
+            x1 = solve(b, rtol=prm.sample_tol)
+            x = x1 + solve(weights.sample(rng, D.shape), rtol=prm.sample_tol)
+            acc1 += x1 * x1
+        else:
+            if prior:
+                b += weights.sample(rng, D.shape)
+            x = solve(b, rtol=prm.sample_tol)
         acc += x * x
-    return acc / max(int(n), 1), solve
+    m = max(int(n), 1)
+    return ((acc / m, acc1 / m) if acc1 is not None else acc / m), solve
 
 
 def _solve(n0, s0, n1, s1, d, e, s, prm, info, plane):
@@ -899,13 +917,25 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info, plane):
     D = wd * J * J
     post = prm.sigma_mode.startswith("posterior")
     weights = _prior_weights(dl, s, prm, plane)
-    var, solve = _sample_variance(D, weights, prm, rng, prm.n_samples, post)
-    if prm.sigma_mode in ("noise+bias", "posterior+bias"):
+    split = prm.weight_sigma and post
+    var, solve = _sample_variance(D, weights, prm, rng, prm.n_samples, post, split)
+    var, var_w = var if split else (var, var if prm.weight_sigma else None)
+    if prm.sigma_mode in ("noise+bias", "posterior+bias") or var_w is not None:
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂; the
         # band term's on d̂ minus its plane)
-        var = var + solve(weights.apply(dl) - weights.rhs(dl.shape), rtol=prm.sample_tol) ** 2
+        b2 = solve(weights.apply(dl) - weights.rhs(dl.shape), rtol=prm.sample_tol) ** 2
+        if prm.sigma_mode in ("noise+bias", "posterior+bias"):
+            var = var + b2
+        if split:
+            var_w = var_w + b2
+        elif var_w is not None:     # the noise σ mode: the same samples
+            var_w = var + (0.0 if prm.sigma_mode == "noise+bias" else b2)
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
+        if var_w is not None:
+            var_w = ndimage.gaussian_filter(var_w, prm.sigma_smooth_px, mode="reflect")
+    if var_w is not None:
+        info["_weight_var"] = var_w
     g = lambda a: ndimage.gaussian_filter(a, prm.norm_sigma_px, mode="reflect")  # noqa: E731
     with np.errstate(invalid="ignore", divide="ignore"):
         info["_zncc"] = g(lv.n0 * w1) / np.sqrt(g(lv.n0 ** 2) * g(w1 ** 2))
@@ -990,6 +1020,7 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
     e = info["epipolar"]
     nanv = lambda a: np.where(valid, a, np.nan)  # noqa: E731
     zncc = info.pop("_zncc")
+    wsig = info.pop("_weight_sigma", None)
     cal.update({k: np.asarray(v).tolist() for k, v in info.items()
                 if k in ("noise_sigma", "epipolar", "prior_scale_px", "noise_factor",
                          "parallax_plane")})
@@ -997,4 +1028,5 @@ def variational_parallax(view0, view1, seeds=None, roi=None, params=None, guess=
                          y1_px=nanv(gy + e[0] + e[1] * gx + e[2] * gy + e[3] * par),
                          sigma_px=sig, sigma_y_px=nanv(np.abs(e[3]) * sig), valid=valid,
                          zncc=zncc, roi=roi, sigma_scale=float(info["noise_factor"]),
-                         params=params or VariationalParams(), calibration=cal)
+                         params=params or VariationalParams(), calibration=cal,
+                         weight_sigma_px=wsig)

@@ -105,6 +105,15 @@ def test_inverse_variance_known_answers_and_scatter():
     assert f[0] == 1.0 and s[0] == 1e-300 and wb[0] == 1.0
     with pytest.raises(SemlabError, match="one σ per row"):
         inverse_variance(a, [1.0], b, [1.0])
+    # a weight σ apart from the bar's: w_b = σa² / (σa² + σb'²), σ = sqrt(w_a² σa² + w_b² σb²)
+    f, s, wb = inverse_variance(a[:2], [1.0, 1.0], b[:2], [2.0, 2.0],
+                                weight_sigma_b=[1.0, np.sqrt(3.0)])
+    assert np.allclose(wb, [0.5, 0.25]) and np.allclose(f, [[0.5, 0.5], [0.5, 1.0]])
+    assert np.allclose(s, [np.hypot(0.5, 1.0), np.hypot(0.75, 0.5)])
+    f, s, wb = inverse_variance(a[:1], [1.0], b[:1], [2.0], weight_sigma_b=[np.nan])
+    assert wb[0] == 0 and s[0] == 1.0 and np.allclose(f, 0.0)     # no weight σ: b unused
+    with pytest.raises(SemlabError, match="one σ per row"):
+        inverse_variance(a, np.ones(4), b, np.ones(4), weight_sigma_b=[1.0])
 
 
 def test_sample_parallax_bilinear_and_holes():
@@ -124,6 +133,13 @@ def test_sample_parallax_bilinear_and_holes():
     assert np.allclose(xy1[3], [12.5 + 0.5 * 9.75, 9.85])
     assert np.all(np.isnan(xy1[1])) and np.isnan(s[1])     # next to a hole
     assert np.all(np.isnan(xy1[2])) and np.isnan(s[2])     # outside the roi
+    # the weight σ of a variational map, when it has one
+    with pytest.raises(SemlabError, match="no 'weight_sigma_px'"):
+        sample_parallax(dm, p, sigma="weight_sigma_px")
+    from dataclasses import replace
+    _, sw = sample_parallax(replace(dm, weight_sigma_px=np.full((20, 30), 0.1)), p,
+                            sigma="weight_sigma_px")
+    assert np.isclose(sw[0], 0.1) and np.isnan(sw[1])
 
 
 def test_agreement_scale_is_the_missing_variance_of_the_second_estimate():

@@ -59,14 +59,16 @@ def test_tiled_auto_match_equals_untiled(pair):
     # positions differ slightly from one map of the whole view: far inside the σ. The band
     # prior (the default) reaches 80 px and pools along the bands, so at the run's default
     # 96 px halo (measured, 2026-12-06: median 0.0020 px, 0.12σ; at most 0.08 px; at a 48 px
-    # halo 0.0037 px, 0.22σ; the isotropic prior at 48 px: 0.0009 px, 0.04σ)
+    # halo 0.0037 px, 0.22σ; the isotropic prior at 48 px: 0.0009 px, 0.04σ). Since stage 9
+    # weighs the map by its noise-plus-bias σ (2026-12-06 evening) the map has more weight and
+    # the tiles' own maps show more: median 0.0024 px (0.09σ), at most 0.107 px
     a3 = auto_match([ref, cur], progress=False, spacing_px=8, smooth_sigma_px=0.0)
     b3 = tiled_auto_match([ref, cur], tiling=TilingParams(tile_px=128), progress=False,
                           spacing_px=8, smooth_sigma_px=0.0)
     assert (a3.valid == b3.valid).mean() >= 0.99
     ok = a3.valid & b3.valid
     d = np.abs(a3.pts[ok, 1] - b3.pts[ok, 1]).max(axis=1)
-    assert np.median(d) < 0.15 * np.median(a3.sigma_px[ok]) and d.max() < 0.1
+    assert np.median(d) < 0.15 * np.median(a3.sigma_px[ok]) and d.max() < 0.15
     # and stage 9 did move the points (the check above is not of two equal runs)
     assert np.median(np.abs(a3.pts[ok, 1] - a.pts[ok, 1]).max(axis=1)) > 1e-3
 

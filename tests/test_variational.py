@@ -72,6 +72,31 @@ def test_sigma_covers_the_error(flat_low_texture):
     assert np.median(sig_n[inner][v]) < np.median(sig[inner][v])
 
 
+def test_weight_sigma_is_the_noise_plus_bias_sigma_beside_the_posterior(flat_low_texture):
+    """``weight_sigma``: the same map and posterior σ, and beside them the noise-plus-bias σ
+    (stage 9's weight), from the noise part of each posterior sample: the ``noise+bias`` mode's
+    σ within Monte Carlo error, about half the posterior σ on this flat patch (whose relief is
+    far smoother than the prior allows); absent unless asked. (Here it is too small: 27 % of
+    the errors within it; stage 9 scales it by the map's agreement with the subsets.)"""
+    v0, v1, true, sub, x = flat_low_texture
+    inner = (slice(12, -12), slice(12, -12))
+    run = lambda **kw: va.refine_parallax(v0, v1, sub.x1_px - x, sub.valid,  # noqa: E731
+                                          params=va.VariationalParams(**kw), return_info=True)
+    par, sig, valid, info = run(weight_sigma=True)
+    par0, sig0, _, info0 = run()
+    par_nb, sig_nb, _, _ = run(sigma_mode="noise+bias")
+    assert "_weight_sigma" not in info0
+    # the same samples, their two parts solved apart (to the samples' tolerance)
+    assert np.array_equal(par, par0, equal_nan=True)
+    assert np.nanmax(np.abs(sig / sig0 - 1)) < 0.02
+    v = valid[inner]
+    w = info["_weight_sigma"][inner][v]
+    assert np.all(np.isfinite(w)) and np.all(np.isnan(info["_weight_sigma"][~valid]))
+    ratio = np.median(w) / np.median(sig[inner][v])
+    assert 0.3 < ratio < 0.7, ratio
+    assert abs(np.median(w) / np.median(sig_nb[inner][v]) - 1) < 0.25
+
+
 @pytest.mark.parametrize("band", [va.ISOTROPIC, {}], ids=["isotropic", "band"])
 def test_direct_and_multigrid_solvers_match_converged_cg(flat_low_texture, band):
     # with the band prior the multigrid is smoothed aggregation (not an M-matrix)
@@ -197,7 +222,7 @@ def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair, band):
     from semlab import tiled_stereo as ts
 
     i0, i1, _, _ = scene_pair
-    prm = va.VariationalParams(**band)
+    prm = va.VariationalParams(**band, weight_sigma=bool(band))
     whole = va.variational_parallax(i0, i1, params=prm)
     cal = {k: whole.calibration[k] for k in ("prior_scale_px", "epipolar", "noise_sigma")}
     calls = []
@@ -216,6 +241,13 @@ def test_tiled_by_the_run_tiler_agrees_with_one_call(scene_pair, band):
     d = np.abs(tp.x1_px - whole.x1_px)[tp.valid & whole.valid]
     # each tile starts from its own crop's flow: the same minimum almost everywhere
     assert np.median(d) < 0.02 and np.percentile(d, 95) < 0.1, np.percentile(d, [50, 95])
+    # stage 9's weight σ comes through the tiles (asked for in the band case only)
+    if band:
+        both = tp.valid & whole.valid
+        r = tp.weight_sigma_px[both] / whole.weight_sigma_px[both]
+        assert np.all(np.isfinite(r)) and abs(np.median(r) - 1) < 0.1, np.median(r)
+    else:
+        assert tp.weight_sigma_px is None and whole.weight_sigma_px is None
 
 
 def test_default_noise_is_the_matchers_calibrated_one():
