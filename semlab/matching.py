@@ -346,7 +346,10 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         of the errors within 1σ and 91–97 % within 2σ (the isotropic prior,
         ``VariationalParams(**ISOTROPIC)``). With the map's band prior (the default since
         2026-12-06): 0.34–0.66× DeepFlow on all sixteen, 94–99 % within 2σ, 74–87 %
-        within 1σ (``benchmarks/results/accuracy_matrix_band_default.md``). It costs one variational
+        within 1σ (``benchmarks/results/accuracy_matrix_band_default.md``); with the two-view
+        weight by the map's noise-plus-bias σ (since c991361): 0.28–0.62× (seed 0) and
+        0.28–0.74× (seed 1) on all sixteen, ≥ 95 % within 2σ, 77–97 % within 1σ (the bars
+        conservative: ``benchmarks/results/accuracy_matrix_stage9_weight.md``). It costs one variational
         map per view pair: ``auto_match`` took 3–5× as long with the isotropic prior (single
         thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
         ``run_stereo`` 34 → 182 s), and the band prior makes the map ~2.5× slower again (the
