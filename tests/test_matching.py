@@ -790,9 +790,9 @@ def test_variational_stage_weighs_the_map_by_its_error_for_this_surface(monkeypa
     """With two views stage 9 weighs the map by its noise plus the prior's plug-in bias
     (``DenseParallax.weight_sigma_px``), not by its posterior σ, which also holds the prior's
     own roughness (on flat parts about twice the map's error with the band prior) and so
-    gives the subsets too much weight: on the ribbon scene the height error is lower (9.2
-    against 9.8 nm with the posterior σ as the weight), with the average's bar from the
-    posterior σ still holding (70 % / 93 % within 1σ / 2σ)."""
+    gives the subsets too much weight: on the ribbon scene the height error is lower (9.1
+    against 9.7 nm with the posterior σ as the weight), with the average's bar from the
+    posterior σ still holding (70 % / 94 % within 1σ / 2σ)."""
     import semlab.fusion as fu
 
     sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)

@@ -74,7 +74,7 @@ def test_sigma_covers_the_error(flat_low_texture):
 
 def test_weight_sigma_is_the_noise_plus_bias_sigma_beside_the_posterior(flat_low_texture):
     """``weight_sigma``: the same map and posterior σ, and beside them the noise-plus-bias σ
-    (stage 9's weight), from the noise part of each posterior sample: the ``noise+bias`` mode's
+    (stage 9's weight), from the posterior's noise part sampled apart: the ``noise+bias`` mode's
     σ within Monte Carlo error, about half the posterior σ on this flat patch (whose relief is
     far smoother than the prior allows); absent unless asked. (Here it is too small: 27 % of
     the errors within it; stage 9 scales it by the map's agreement with the subsets.)"""
@@ -86,9 +86,12 @@ def test_weight_sigma_is_the_noise_plus_bias_sigma_beside_the_posterior(flat_low
     par0, sig0, _, info0 = run()
     par_nb, sig_nb, _, _ = run(sigma_mode="noise+bias")
     assert "_weight_sigma" not in info0
-    # the same samples, their two parts solved apart (to the samples' tolerance)
+    # the same map; the posterior σ from its two parts sampled apart (6 + 6 samples here
+    # against 12 whole ones): the same within Monte Carlo error (median 2 %, 95 % of the
+    # pixels within 20 %)
     assert np.array_equal(par, par0, equal_nan=True)
-    assert np.nanmax(np.abs(sig / sig0 - 1)) < 0.02
+    assert abs(np.nanmedian(sig[inner]) / np.nanmedian(sig0[inner]) - 1) < 0.08
+    assert np.nanpercentile(np.abs(sig / sig0 - 1), 95) < 0.35
     v = valid[inner]
     w = info["_weight_sigma"][inner][v]
     assert np.all(np.isfinite(w)) and np.all(np.isnan(info["_weight_sigma"][~valid]))
