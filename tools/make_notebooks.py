@@ -493,8 +493,12 @@ if res is not None and exp.truth_dir is not None:
                                  res.xyz_um[:, :2])
     rmse_nm = e["rmse_um"] * 1000
     within_1sigma = float(np.mean(np.abs(e["err_um"]) <= res.z_err_um))
-    print(f"{e['n']} points: height RMSE {rmse_nm:.1f} nm, {100 * within_1sigma:.0f} % within 1σ")
-''', "e['n'] >= 500 and rmse_nm < 15 and 0.55 <= within_1sigma <= 0.85"),
+    within_2sigma = float(np.mean(np.abs(e["err_um"]) <= 2 * res.z_err_um))
+    print(f"{e['n']} points: height RMSE {rmse_nm:.1f} nm, {100 * within_1sigma:.0f} % / "
+          f"{100 * within_2sigma:.0f} % within 1σ / 2σ")
+# (the points' bars are conservative since stage 9 weighs the map by its noise-plus-bias σ
+# and keeps its posterior σ for the bar: README, "Error bars")
+''', "e['n'] >= 500 and rmse_nm < 15 and 0.55 <= within_1sigma <= 0.97 and within_2sigma >= 0.93"),
     check_demo('''
 if hm is not None and exp.truth_dir is not None:
     d = validation.heightmap_errors(hm.z_um, hm.sigma_um, hm.valid, exp.truth_dir, roi=hm.roi)
