@@ -921,17 +921,15 @@ def _solve(n0, s0, n1, s1, d, e, s, prm, info, plane):
     weights = _prior_weights(dl, s, prm, plane)
     split = prm.weight_sigma and post
     var, solve = _sample_variance(D, weights, prm, rng, prm.n_samples, post, split)
+    # the weight's variance: the noise part (without the prior's samples, that is all of them)
     var, var_w = var if split else (var, var if prm.weight_sigma else None)
-    if prm.sigma_mode in ("noise+bias", "posterior+bias") or var_w is not None:
+    with_bias = prm.sigma_mode.endswith("+bias")
+    if with_bias or var_w is not None:
         # the prior's pull on the estimate: bias = -A⁻¹ Gᵀ W G d (plug-in with d = d̂; the
         # band term's on d̂ minus its plane)
         b2 = solve(weights.apply(dl) - weights.rhs(dl.shape), rtol=prm.sample_tol) ** 2
-        if prm.sigma_mode in ("noise+bias", "posterior+bias"):
-            var = var + b2
-        if split:
-            var_w = var_w + b2
-        elif var_w is not None:     # the noise σ mode: the same samples
-            var_w = var + (0.0 if prm.sigma_mode == "noise+bias" else b2)
+        var = var + b2 if with_bias else var
+        var_w = var_w + b2 if var_w is not None else None
     if prm.sigma_smooth_px > 0:
         var = ndimage.gaussian_filter(var, prm.sigma_smooth_px, mode="reflect")
         if var_w is not None:
