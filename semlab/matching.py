@@ -194,7 +194,8 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        the inverse-variance average of its subset match and that estimate
        (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's), the map's σ
        scaled by the held-out views (three or more: :func:`semlab.fusion.held_out_scale`)
-       or by its agreement with the subsets (two views). With two views the map is
+       or by its agreement with the subsets around each point (two views: its 100 nearest,
+       so a map wrong on part of the view only is down-weighted there). With two views the map is
        weighted by its error for the surface at hand, its noise plus the prior's plug-in
        bias (``DenseParallax.weight_sigma_px``), and the average's 1σ uses its posterior
        σ, which also holds the prior's roughness (about twice the error on flat parts with
@@ -821,7 +822,8 @@ def _stage_variational(st):
     averaged with the variational parallax map of that view pair (seeded by them), by
     inverse variance, the map's σ scaled by how well the average predicts the other views
     (:func:`semlab.fusion.held_out_scale`, with three or more views) or else by its agreement
-    with the subset matches (:func:`semlab.fusion.agreement_scale`); their 1σ become the
+    with the subset matches around each point (:func:`semlab.fusion.agreement_scale` with
+    ``xy``); their 1σ become the
     average's (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
@@ -850,7 +852,9 @@ def _stage_variational(st):
         # the map's σ scaled (k ≥ 1) where its errors are larger than it says, e.g. relief its
         # prior flattens: with another view, by how well the average predicts that view's
         # subset matches (held out: their errors are their own); with two views, by the
-        # map's agreement with the subset matches, whose σ is then taken as calibrated
+        # map's agreement with the subset matches around each point (its 100 nearest: a map
+        # wrong on a tall object only is down-weighted there), the subsets' σ taken as
+        # calibrated
         held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
         vp = st.params.variational_params or variational.VariationalParams()
         dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
@@ -875,7 +879,8 @@ def _stage_variational(st):
             k = fusion.held_out_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1, held)
         else:
             s1w = fusion.sample_parallax(dm, st.grid[idx], sigma="weight_sigma_px")[1]
-            k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w)
+            k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w,
+                                       xy=st.grid[idx])
         fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1,
                                                  weight_sigma_b=k * s1w)
         st.out[idx, j] = fused

@@ -165,6 +165,38 @@ def test_agreement_scale_is_the_missing_variance_of_the_second_estimate():
     assert fusion.agreement_scale(a[:5], sa[:5], b[:5], sb[:5]) == 1.0   # too few to tell
 
 
+def test_local_agreement_scale_sees_an_estimate_wrong_on_part_of_the_view():
+    """``b``'s errors 4× its σ on a fifth of the view (x < 24) and as its σ says elsewhere:
+    the global scale spreads that over the whole view (k ≈ 1.5: too little there, too much
+    elsewhere), the local one (``xy``) puts it where it is (≈ 4 there, ≈ 1 elsewhere), and
+    its average is better in both parts; with as many neighbours as rows the local scale is
+    the global one on every row."""
+    rng = np.random.default_rng(5)
+    xy = np.stack(np.meshgrid(np.arange(0, 120, 2.0), np.arange(0, 80, 2.0)), -1).reshape(-1, 2)
+    n = len(xy)
+    truth = rng.normal(0, 5, n)
+    sa, sb = np.full(n, 0.1), np.full(n, 0.05)
+    bad = xy[:, 0] < 24
+    a = truth + sa * rng.standard_normal(n)
+    b = truth + np.where(bad, 4.0, 1.0) * sb * rng.standard_normal(n)
+    kg = fusion.agreement_scale(a, sa, b, sb)
+    kl = fusion.agreement_scale(a, sa, b, sb, xy=xy)
+    assert isinstance(kg, float) and 1.2 < kg < 2.0, kg
+    assert kl.shape == (n,)
+    inner = xy[:, 0] < 12                  # its 100 neighbours (~20 px wide) in the bad fifth
+    far = xy[:, 0] > 50
+    assert np.median(kl[inner]) > 3.0 and np.median(kl[far]) < 1.2, (
+        np.median(kl[inner]), np.median(kl[far]))
+    err = lambda k, m: np.sqrt(np.mean((fusion.inverse_variance(a, sa, b, k * sb)[0]  # noqa: E731
+                                        - truth)[m] ** 2))
+    assert err(kl, bad) < 0.8 * err(kg, bad), (err(kl, bad), err(kg, bad))
+    assert err(kl, far) < 0.99 * err(kg, far), (err(kl, far), err(kg, far))
+    assert np.allclose(fusion.agreement_scale(a, sa, b, sb, xy=xy, neighbours=n), kg,
+                       rtol=1e-6)
+    assert np.array_equal(fusion.agreement_scale(a[:5], sa[:5], b[:5], sb[:5], xy=xy[:5]),
+                          np.ones(5))
+
+
 def test_held_out_scale_sees_the_excess_error_that_conservative_sigma_hides():
     """``a``'s σ three times its errors, ``b``'s errors 3× its σ: compared with each other,
     ``b``'s excess partly hides in ``a``'s unused variance (agreement scale ~2.5, and the
