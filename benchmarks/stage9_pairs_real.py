@@ -9,8 +9,11 @@ position, ``p_0j = a p_01 + b + c x + d y``; fitted robustly (three rounds, resi
 ``(01, 0j)`` and region (grain / substrate): the robust SD of the residual (px), and the
 fraction within the predicted 1σ / 2σ ``sqrt(σ_0j² + a² σ_01²)`` (the two matches share view
 0's noise, so that σ is not exact). Three weightings of stage 9 side by side in one run:
-the subset matches alone (``variational_fusion=False``), the map weighted by its posterior σ
-(the default until c991361), and the map weighted by its noise-plus-bias σ (the default since).
+the subset matches alone (``variational_fusion=False``), the map's σ scaled by its agreement
+with the subsets over the whole view (one ``k``: the default until the local scale), and
+scaled by the agreement of each point's 100 nearest (``fusion.agreement_scale(..., xy=...)``,
+the default since). (Until then the script compared the map weighed by its posterior σ with
+its noise-plus-bias σ: ``git show 913ab20:benchmarks/stage9_pairs_real.py``.)
 
 Run:  python benchmarks/stage9_pairs_real.py
 """
@@ -46,14 +49,18 @@ def _fit(p1, pj, xy, use):
 
 
 def run(mode, ims):
-    real = fusion.sample_parallax
-    if mode == "posterior":     # the former weight: the posterior σ
-        fusion.sample_parallax = lambda dm, p, sigma="sigma_px": real(dm, p)
+    real = fusion.agreement_scale
+    if mode == "whole view":    # the former scale: one k for the whole view
+
+        def whole_view(*a, xy=None, **k):
+            return real(*a, **k)
+
+        fusion.agreement_scale = whole_view
     try:
         kw = {"variational_fusion": False} if mode == "subsets" else {}
         return [auto_match([ims[0], ims[j]], progress=False, **kw) for j in (1, 2, 3)]
     finally:
-        fusion.sample_parallax = real
+        fusion.agreement_scale = real
 
 
 def main():
@@ -61,9 +68,9 @@ def main():
         print(f"(skipped: {POLLEN} not present)")
         return
     ims = [read_image(POLLEN / f"pot1_0{i}.jpg").data for i in range(4)]
-    print("| weighting | pair | region | points | robust SD of residual (px) | within 1σ / 2σ "
+    print("| map's scale | pair | region | points | robust SD of residual (px) | within 1σ / 2σ "
           "| median predicted σ (px) |\n|---|---|---|---|---|---|---|")
-    for mode in ("subsets", "posterior", "noise+bias"):
+    for mode in ("subsets", "whole view", "local"):
         t = time.perf_counter()
         ms = run(mode, ims)
         ok = np.all([m.valid for m in ms], axis=0)

@@ -349,19 +349,22 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         2026-12-06): 0.34–0.66× DeepFlow on all sixteen, 94–99 % within 2σ, 74–87 %
         within 1σ (``benchmarks/results/accuracy_matrix_band_default.md``); with the two-view
         weight by the map's noise-plus-bias σ (since c991361): 0.28–0.62× (seed 0) and
-        0.28–0.74× (seed 1) on all sixteen, ≥ 95 % within 2σ, 77–97 % within 1σ (the bars
-        conservative: ``benchmarks/results/accuracy_matrix_stage9_weight.md``). It costs one variational
-        map per view pair: ``auto_match`` took 3–5× as long with the isotropic prior (single
-        thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
+        0.28–0.75× (seed 1) on all sixteen, ≥ 95 % within 2σ, 78–97 % within 1σ (the bars
+        conservative: ``benchmarks/results/accuracy_matrix_stage9_local.md``). It costs one
+        variational map per view pair: ``auto_match`` took 3–5× as long with the isotropic
+        prior (single thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
         ``run_stereo`` 34 → 182 s), and the band prior makes the map ~2.5× slower again (the
         demo pair's map 6–8 → 16–19 s, 2026-12-06, after 747e202). The map's σ is
         scaled (k ≥ 1): with three or more views by how well the average predicts each
         other view's subset matches (:func:`semlab.fusion.held_out_scale`), with two by its
-        agreement with the subset matches (:func:`semlab.fusion.agreement_scale`; 1 on every
-        matrix cell). On the real ``pollen_pot1`` view 1 the held-out scale is 13.5 (the map
-        nearly unused) where the agreement scale said 1.44 and the stage made the
-        pair-to-pair agreement worse (docs/accuracy.md, "Stage 9 on real data without
-        truth"). False: the subset matches alone.
+        agreement with the subset matches around each point (its 100 nearest,
+        :func:`semlab.fusion.agreement_scale` with ``xy``; 1 at 88–98 % of the points of the
+        matrix cells, and on the real ``pollen_pot1`` pairs the grain's pair-to-pair residual
+        0.206 → 0.192 px against one scale for the view). On the real ``pollen_pot1``
+        view 1 the held-out scale is 13.5 (the map nearly unused) where the whole-view
+        agreement scale said 1.44 and the stage made the pair-to-pair agreement worse
+        (docs/accuracy.md, "Stage 9 on real data without truth"). False: the subset matches
+        alone.
     variational_params : semlab.variational.VariationalParams, optional
         Parameters of stage 9's maps (default ``VariationalParams()``); recorded with the
         others (``asdict`` gives its fields).
