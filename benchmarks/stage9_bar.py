@@ -36,8 +36,9 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
+from stage9_walls import _errors, _nm_per_px  # noqa: E402
 
-from semlab import fusion, reconstruct, validation  # noqa: E402
+from semlab import fusion  # noqa: E402
 from semlab.fusion import CHI2_1_MEDIAN  # noqa: E402
 
 CELLS = ("polished/low/-5/5@1", "polished/realistic/-5/5@0", "polished/realistic/0/8@1",
@@ -69,13 +70,10 @@ def record_stage9(exp):
 
 
 def errors_px(exp, tilts, p0, x1):
-    """Height error (plane removed) of view-1 x positions ``x1`` at ``p0``, in parallax px."""
+    """Height error (plane removed) of view-1 x positions ``x1`` at ``p0``, in parallax px
+    (:func:`stage9_walls._errors`, converted)."""
     pts = np.stack([p0, np.column_stack([x1, p0[:, 1]])], 1)
-    z = reconstruct.heights_from_tilts(pts, list(tilts), exp.pixel_size_um).xyz_um[:, 2]
-    zt = validation.true_height_at(exp.truth_dir, p0)
-    um_per_px = abs(reconstruct.parallax_height(1.0, 0.0, *tilts, exp.pixel_size_um)
-                    - reconstruct.parallax_height(0.0, 0.0, *tilts, exp.pixel_size_um))
-    return validation.height_errors(z, zt, p0, plane="lsq")["err_um"] / um_per_px
+    return _errors(exp, pts, tilts) / _nm_per_px(exp, tilts)
 
 
 def local_slope(p, f, k=9):

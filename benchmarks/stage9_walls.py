@@ -42,6 +42,12 @@ def _errors(exp, pts, tilts):
     return 1000 * validation.height_errors(z, zt, pts[:, 0], plane="lsq")["err_um"]
 
 
+def _nm_per_px(exp, tilts):
+    """Height (nm) of one pixel of x-parallax for the tilt pair."""
+    return 1000 * abs(reconstruct.parallax_height(1.0, 0.0, *tilts, exp.pixel_size_um)
+                      - reconstruct.parallax_height(0.0, 0.0, *tilts, exp.pixel_size_um))
+
+
 def _map_at(v0, v1, seeds, p0, mode, vparams):
     dm = variational.variational_parallax(v0, v1, seeds=seeds,
                                           params=replace(vparams, sigma_mode=mode))
@@ -60,8 +66,7 @@ def run(cell, tmp, vparams, seed=0):
     z = 1000 * np.load(exp.truth_dir / "height_view0.npy")
     slope = ndimage.maximum_filter(np.hypot(*np.gradient(z)), size=21)
     slope = ndimage.map_coordinates(slope, [p0[:, 1], p0[:, 0]], order=0)
-    nm_per_px = 1000 * abs(reconstruct.parallax_height(1.0, 0.0, *tilts, exp.pixel_size_um)
-                           - reconstruct.parallax_height(0.0, 0.0, *tilts, exp.pixel_size_um))
+    nm_per_px = _nm_per_px(exp, tilts)
     e = {"average": _errors(exp, fused.pts, tilts), "subsets": _errors(exp, sub.pts, tilts)}
     sig = {}
     for mode in ("posterior+bias", "noise+bias"):
