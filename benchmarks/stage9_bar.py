@@ -18,7 +18,15 @@ recorded at its call and scored against the truth, in pixels of x-parallax:
 - the average's fraction within 1σ / 2σ with three bars: ``σ_p`` (the default), ``σ_w``, and
   an **oracle** ``sqrt(σ_w² + ℓ² |∇b|²)`` whose length ``ℓ`` is fitted to the truth (median
   of error² / bar² equal to χ²₁'s): what a bar that follows the map's slope could at best do,
-  with the ``ℓ`` the data cannot give (fitted to ``b − a`` instead, ``ℓ = 0`` on every cell).
+  with the ``ℓ`` the data cannot give (fitted to ``b − a`` instead, ``ℓ = 0`` on every cell);
+- the ``σ_w`` bar times **one scale for the view** fitted to the truth (the average's RMS
+  error over that bar), and the fractions it gives: a bar of this form holds if its scale is
+  known;
+- what two views could give that scale from: the map is about the efficient estimate of the
+  same pixels (``cov(e_a, e_b) / E e_b²`` near 1, the nested-estimator relation of Hausman's
+  test), so ``E e_b² = E e_a² − E (b − a)²``; with the subsets' predicted σ for ``E e_a²``
+  the estimate ``(E σ_a² − E d²) / E e_b²`` shows how far a few per cent of conservatism in
+  ``σ_a`` throws it (the difference of two numbers of about the same size).
 
 Run:  python benchmarks/stage9_bar.py [--cells polished/realistic/-5/5@0,real:fei/low/-5/5@0]
 """
@@ -109,18 +117,29 @@ def analyse(exp, tilts, rec):
     def average(s_bar):
         wb = sa ** 2 / (sa ** 2 + sw ** 2)
         e = errors_px(exp, tilts, p0, (1 - wb) * a + wb * b)
-        s = np.hypot((1 - wb) * sa, wb * s_bar)
-        return np.mean(np.abs(e) < s), np.mean(np.abs(e) < 2 * s)
+        return _within(e, np.hypot((1 - wb) * sa, wb * s_bar))
 
     ell = fit_length(eb ** 2, sw ** 2, g ** 2)
     rms = lambda v: float(np.sqrt(np.mean(v ** 2)))  # noqa: E731
+    # one scale for the view, fitted to the truth: the average's RMS error over its σ_w bar
+    wb = sa ** 2 / (sa ** 2 + sw ** 2)
+    e_avg = errors_px(exp, tilts, p0, (1 - wb) * a + wb * b)
+    scale = rms(e_avg / np.hypot((1 - wb) * sa, wb * sw))
     return {"n": int(ok.sum()), "corr": float(np.corrcoef(ea, eb)[0, 1]),
             "agree": float(np.median((b - a) ** 2 / (sa ** 2 + sw ** 2)) / CHI2_1_MEDIAN),
             "ell_d": fit_length((b - a) ** 2, sa ** 2 + sw ** 2, g ** 2), "ell": ell,
             "lo": (rms(eb[lo]), np.median(sw[lo]), np.median(sp[lo])),
             "hi": (rms(eb[hi]), np.median(sw[hi]), np.median(sp[hi])),
             "post": average(sp), "nb": average(sw),
-            "oracle": average(np.sqrt(sw ** 2 + ell ** 2 * g ** 2))}
+            "oracle": average(np.sqrt(sw ** 2 + ell ** 2 * g ** 2)),
+            "scaled": (scale, *_within(e_avg, scale * np.hypot((1 - wb) * sa, wb * sw))),
+            "nested": (float(np.mean(ea * eb) / np.mean(eb ** 2)),
+                       float((np.mean(sa ** 2) - np.mean((b - a) ** 2)) / np.mean(eb ** 2)))}
+
+
+def _within(e, s):
+    """Fractions of ``|e|`` within ``s`` and ``2 s``."""
+    return float(np.mean(np.abs(e) < s)), float(np.mean(np.abs(e) < 2 * s))
 
 
 def main(argv=None):
@@ -131,7 +150,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print("| cell | seed | points | corr | agree | ℓ from b − a / truth (px) | map error, "
           "flattest ¼: RMS, σ_w, σ_p (px) | steepest ¼ | average within 1σ / 2σ: σ_p "
-          "(default) | σ_w | oracle |\n|---|---|---|---|---|---|---|---|---|---|---|")
+          "(default) | σ_w | oracle | σ_w × one scale fitted to the truth: scale, within 1σ / "
+          "2σ | cov(e_a, e_b) / E e_b², (E σ_a² − E d²) / E e_b² |\n"
+          + "|---" * 13 + "|")
     pct = lambda f: f"{100 * f[0]:.0f} / {100 * f[1]:.0f} %"  # noqa: E731
     trio = lambda t: " / ".join(f"{v:.3f}" for v in t)  # noqa: E731
     for spec in args.cells.split(","):
@@ -144,7 +165,9 @@ def main(argv=None):
             r = analyse(exp, tilts, record_stage9(exp))
         print(f"| {cell} | {seed or 0} | {r['n']} | {r['corr']:+.2f} | {r['agree']:.2f} | "
               f"{r['ell_d']:.2f} / {r['ell']:.2f} | {trio(r['lo'])} | {trio(r['hi'])} | "
-              f"{pct(r['post'])} | {pct(r['nb'])} | {pct(r['oracle'])} |", flush=True)
+              f"{pct(r['post'])} | {pct(r['nb'])} | {pct(r['oracle'])} | "
+              f"{r['scaled'][0]:.2f}, {pct(r['scaled'][1:])} | "
+              f"{r['nested'][0]:.2f}, {r['nested'][1]:.2f} |", flush=True)
         print(f"<!-- {spec}: {time.perf_counter() - t:.0f} s -->", flush=True)
 
 
