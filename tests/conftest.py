@@ -33,3 +33,14 @@ def small_experiment(small_experiment_master, tmp_path):
     dst = tmp_path / "exp"
     shutil.copytree(small_experiment_master, dst)
     return dst
+
+
+def pytest_collection_modifyitems(config, items):
+    """Files holding a ``slow`` test first, each file's tests in their order (a stable sort).
+
+    ``scripts/test.sh`` runs the files in parallel (pytest-xdist, ``--dist loadfile
+    --no-loadscope-reorder``), handing them to the workers in this order: a long file started
+    last would leave one worker running it alone at the end.
+    """
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)
