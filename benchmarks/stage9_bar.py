@@ -114,17 +114,16 @@ def analyse(exp, tilts, rec):
     g = local_slope(p0, b - p0[:, 0])
     lo, hi = g <= np.quantile(g, 0.25), g >= np.quantile(g, 0.75)
 
-    def average(s_bar):
-        wb = sa ** 2 / (sa ** 2 + sw ** 2)
-        e = errors_px(exp, tilts, p0, (1 - wb) * a + wb * b)
-        return _within(e, np.hypot((1 - wb) * sa, wb * s_bar))
+    # stage 9's average (weighted by σ_w) and its error, scored against each bar below
+    wb = sa ** 2 / (sa ** 2 + sw ** 2)
+    e_avg = errors_px(exp, tilts, p0, (1 - wb) * a + wb * b)
+    bar = lambda s_map: np.hypot((1 - wb) * sa, wb * s_map)  # noqa: E731
+    average = lambda s_map: _within(e_avg, bar(s_map))  # noqa: E731
 
     ell = fit_length(eb ** 2, sw ** 2, g ** 2)
     rms = lambda v: float(np.sqrt(np.mean(v ** 2)))  # noqa: E731
     # one scale for the view, fitted to the truth: the average's RMS error over its σ_w bar
-    wb = sa ** 2 / (sa ** 2 + sw ** 2)
-    e_avg = errors_px(exp, tilts, p0, (1 - wb) * a + wb * b)
-    scale = rms(e_avg / np.hypot((1 - wb) * sa, wb * sw))
+    scale = rms(e_avg / bar(sw))
     return {"n": int(ok.sum()), "corr": float(np.corrcoef(ea, eb)[0, 1]),
             "agree": float(np.median((b - a) ** 2 / (sa ** 2 + sw ** 2)) / CHI2_1_MEDIAN),
             "ell_d": fit_length((b - a) ** 2, sa ** 2 + sw ** 2, g ** 2), "ell": ell,
@@ -132,7 +131,7 @@ def analyse(exp, tilts, rec):
             "hi": (rms(eb[hi]), np.median(sw[hi]), np.median(sp[hi])),
             "post": average(sp), "nb": average(sw),
             "oracle": average(np.sqrt(sw ** 2 + ell ** 2 * g ** 2)),
-            "scaled": (scale, *_within(e_avg, scale * np.hypot((1 - wb) * sa, wb * sw))),
+            "scaled": (scale, *_within(e_avg, scale * bar(sw))),
             "nested": (float(np.mean(ea * eb) / np.mean(eb ** 2)),
                        float((np.mean(sa ** 2) - np.mean((b - a) ** 2)) / np.mean(eb ** 2)))}
 
