@@ -136,6 +136,14 @@ def analyse(exp, tilts, rec):
                        float((np.mean(sa ** 2) - np.mean((b - a) ** 2)) / np.mean(eb ** 2)))}
 
 
+def parse_cell(spec):
+    """``REGIME/NOISE/T0/T1@SEED`` (seed optional, default 0): ``(cell, regime, noise,
+    (t0, t1), seed)``."""
+    cell, _, seed = spec.partition("@")
+    regime, noise, t0, t1 = cell.split("/")
+    return cell, regime, noise, (float(t0), float(t1)), int(seed or 0)
+
+
 def _within(e, s):
     """Fractions of ``|e|`` within ``s`` and ``2 s``."""
     return float(np.mean(np.abs(e) < s)), float(np.mean(np.abs(e) < 2 * s))
@@ -155,14 +163,12 @@ def main(argv=None):
     pct = lambda f: f"{100 * f[0]:.0f} / {100 * f[1]:.0f} %"  # noqa: E731
     trio = lambda t: " / ".join(f"{v:.3f}" for v in t)  # noqa: E731
     for spec in args.cells.split(","):
-        cell, _, seed = spec.partition("@")
-        regime, noise, t0, t1 = cell.split("/")
-        tilts = (float(t0), float(t1))
+        cell, regime, noise, tilts, seed = parse_cell(spec)
         t = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            exp = am.make_cell(tmp, regime, noise, tilts, seed=int(seed or 0))
+            exp = am.make_cell(tmp, regime, noise, tilts, seed=seed)
             r = analyse(exp, tilts, record_stage9(exp))
-        print(f"| {cell} | {seed or 0} | {r['n']} | {r['corr']:+.2f} | {r['agree']:.2f} | "
+        print(f"| {cell} | {seed} | {r['n']} | {r['corr']:+.2f} | {r['agree']:.2f} | "
               f"{r['ell_d']:.2f} / {r['ell']:.2f} | {trio(r['lo'])} | {trio(r['hi'])} | "
               f"{pct(r['post'])} | {pct(r['nb'])} | {pct(r['oracle'])} | "
               f"{r['scaled'][0]:.2f}, {pct(r['scaled'][1:])} | "

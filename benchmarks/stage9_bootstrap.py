@@ -197,12 +197,10 @@ def main(argv=None):
           + " | ".join(f"pilot `{p}`: scales; average within 1σ / 2σ" for p in PILOTS)
           + " |\n" + "|---" * (3 + len(PILOTS)) + "|")
     for spec in args.cells.split(","):
-        cell, _, seed = spec.partition("@")
-        regime, level, t0, t1 = cell.split("/")
-        tilts = (float(t0), float(t1))
+        cell, regime, level, tilts, seed = s9.parse_cell(spec)
         t = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            exp = am.make_cell(tmp, regime, level, tilts, seed=int(seed or 0))
+            exp = am.make_cell(tmp, regime, level, tilts, seed=seed)
             rec, call = record(exp)
             real, e_avg, bar = truth_scales(exp, tilts, rec)
             cols, k_of = [], {}
@@ -217,7 +215,7 @@ def main(argv=None):
                     k = k_of[pilot][0]
                 w1, w2 = s9._within(e_avg, k[0] * bar)
                 cols.append(f"{trio(k)}; {100 * w1:.0f} / {100 * w2:.0f} %")
-        print(f"| {cell} | {seed or 0} | {trio(real)} | " + " | ".join(cols) + " |", flush=True)
+        print(f"| {cell} | {seed} | {trio(real)} | " + " | ".join(cols) + " |", flush=True)
         print(f"<!-- {spec}: {time.perf_counter() - t:.0f} s -->", flush=True)
 
 
