@@ -1,0 +1,85 @@
+"""Three or more views: stage 9's held-out scale against the two-view agreement scale (#13).
+
+With three or more views stage 9 of :func:`semlab.matching.auto_match` scales each map's σ by
+how well the average predicts another view's subset matches
+(:func:`semlab.fusion.held_out_scale`, posterior σ as the weight); with two, by the map's
+local agreement with the subsets (:func:`semlab.fusion.agreement_scale`, noise-plus-bias σ
+as the weight). ``--mode agreement`` runs the two-view mechanism on every view pair of a
+multi-view run (``_held_out_positions`` made to find no held-out view) and measures:
+
+- ``--cells``: accuracy-matrix cells (``benchmarks/accuracy_matrix.py --sets =auto``, the
+  same scoring; e.g. the four three-view cells), written to ``--out``;
+- ``--brassica``: the real four-view Brassica pollen crop of
+  ``tests/test_real_and_large.py::test_real_brassica_series_error_bars_hold_pair_to_pair``:
+  the heights of view pairs (0,1), (2,3), (1,2) compared pairwise (plane removed), the
+  fraction within 1σ / 2σ of the difference and its robust SD (µm at a pixel size of 1).
+
+Run:  python benchmarks/stage9_three_view_scale.py --mode agreement --brassica
+      python benchmarks/stage9_three_view_scale.py --mode heldout --cells polished/realistic/-5/0/5 --seed 1 --out m.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import runpy
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def brassica(data_root):
+    """One line: the pair-to-pair check of the four Brassica views."""
+    from semlab.io import read_image
+    from semlab.matching import auto_match
+    from semlab.reconstruct import estimate_tilts, heights_from_tilts
+
+    d = Path(data_root) / "real_sem" / "brassica"
+    ims = [read_image(d / f"Brassica0{i}.jpg").data[100:420, 200:648] for i in range(1, 5)]
+    v = auto_match(ims, progress=False).only_valid()
+    v = v.select(np.isfinite(v.sigma_px) & (v.sigma_px > 0))
+    tilt = estimate_tilts(v.pts, progress=False).tilt_deg
+    z, zs = [], []
+    for a, b in ((0, 1), (2, 3), (1, 2)):
+        z.append(heights_from_tilts(v.pts[:, [a, b]], tilt[[a, b]], 1.0).xyz_um[:, 2])
+        sa, sb = (0.0 if k == 0 else v.sigma_px for k in (a, b))
+        ca, cb = np.cos(np.deg2rad(tilt[[a, b]]))
+        zs.append(np.hypot(sa * cb, sb * ca) / abs(np.sin(np.deg2rad(tilt[b] - tilt[a]))))
+    xy1 = np.column_stack([v.pts[:, 0], np.ones(len(v.pts))])
+    out = []
+    for i, k in ((0, 1), (0, 2), (1, 2)):
+        dd = z[i] - z[k]
+        dd = dd - xy1 @ np.linalg.lstsq(xy1, dd, rcond=None)[0]
+        s = np.hypot(zs[i], zs[k])
+        out.append(f"{i}–{k}: {100 * np.mean(np.abs(dd) <= s):.0f} / "
+                   f"{100 * np.mean(np.abs(dd) <= 2 * s):.0f} %, robust SD "
+                   f"{1.4826 * np.median(np.abs(dd)):.2f}")
+    return f"{len(v.pts)} points; " + "; ".join(out)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--mode", choices=("heldout", "agreement"), default="heldout")
+    ap.add_argument("--brassica", action="store_true")
+    ap.add_argument("--data-root", default=str(HERE.parent.parent / "shared" / "data"))
+    ap.add_argument("--cells", default=None)
+    ap.add_argument("--seed", default="0")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    if args.mode == "agreement":
+        from semlab import matching
+        matching._held_out_positions = lambda *a, **k: None
+    if args.brassica:
+        print(f"brassica, {args.mode}: {brassica(args.data_root)}", flush=True)
+    if args.cells:
+        sys.argv = ["accuracy_matrix.py", "--sets", "=auto", "--seed", args.seed,
+                    "--cells", args.cells] + (["--out", args.out] if args.out else [])
+        sys.path.insert(0, str(HERE))
+        runpy.run_path(str(HERE / "accuracy_matrix.py"), run_name="__main__")
+
+
+if __name__ == "__main__":
+    main()
