@@ -11,8 +11,9 @@ multi-view run (``_held_out_positions`` made to find no held-out view) and measu
   same scoring; e.g. the four three-view cells), written to ``--out``;
 - ``--brassica``: the real four-view Brassica pollen crop of
   ``tests/test_real_and_large.py::test_real_brassica_series_error_bars_hold_pair_to_pair``:
-  the heights of view pairs (0,1), (2,3), (1,2) compared pairwise (plane removed), the
-  fraction within 1σ / 2σ of the difference and its robust SD (µm at a pixel size of 1).
+  the heights of view pairs (0,1), (2,3), (1,2) compared pairwise
+  (:func:`semlab.validation.pair_height_differences`, the test's check): the fraction
+  within 1σ / 2σ of each difference and its robust SD (µm at a pixel size of 1).
 
 Run:  python benchmarks/stage9_three_view_scale.py --mode agreement --brassica
       python benchmarks/stage9_three_view_scale.py --mode heldout --cells polished/realistic/-5/0/5 --seed 1 --out m.md
@@ -34,28 +35,18 @@ def brassica(data_root):
     """One line: the pair-to-pair check of the four Brassica views."""
     from semlab.io import read_image
     from semlab.matching import auto_match
-    from semlab.reconstruct import estimate_tilts, heights_from_tilts
+    from semlab.reconstruct import estimate_tilts
+    from semlab.validation import pair_height_differences
 
     d = Path(data_root) / "real_sem" / "brassica"
     ims = [read_image(d / f"Brassica0{i}.jpg").data[100:420, 200:648] for i in range(1, 5)]
     v = auto_match(ims, progress=False).only_valid()
     v = v.select(np.isfinite(v.sigma_px) & (v.sigma_px > 0))
     tilt = estimate_tilts(v.pts, progress=False).tilt_deg
-    z, zs = [], []
-    for a, b in ((0, 1), (2, 3), (1, 2)):
-        z.append(heights_from_tilts(v.pts[:, [a, b]], tilt[[a, b]], 1.0).xyz_um[:, 2])
-        sa, sb = (0.0 if k == 0 else v.sigma_px for k in (a, b))
-        ca, cb = np.cos(np.deg2rad(tilt[[a, b]]))
-        zs.append(np.hypot(sa * cb, sb * ca) / abs(np.sin(np.deg2rad(tilt[b] - tilt[a]))))
-    xy1 = np.column_stack([v.pts[:, 0], np.ones(len(v.pts))])
-    out = []
-    for i, k in ((0, 1), (0, 2), (1, 2)):
-        dd = z[i] - z[k]
-        dd = dd - xy1 @ np.linalg.lstsq(xy1, dd, rcond=None)[0]
-        s = np.hypot(zs[i], zs[k])
-        out.append(f"{i}–{k}: {100 * np.mean(np.abs(dd) <= s):.0f} / "
-                   f"{100 * np.mean(np.abs(dd) <= 2 * s):.0f} %, robust SD "
-                   f"{1.4826 * np.median(np.abs(dd)):.2f}")
+    out = [f"{c['pairs'][0][0]}{c['pairs'][0][1]}–{c['pairs'][1][0]}{c['pairs'][1][1]}: "
+           f"{100 * c['within_1sigma']:.0f} / {100 * c['within_2sigma']:.0f} %, robust SD "
+           f"{c['robust_sd_um']:.2f}"
+           for c in pair_height_differences(v.pts, tilt, v.sigma_px, ((0, 1), (2, 3), (1, 2)))]
     return f"{len(v.pts)} points; " + "; ".join(out)
 
 

@@ -7,7 +7,8 @@ gauge, so it may also be fitted robustly (``plane="robust"``: Huber IRLS), which
 error cannot tilt.
 
 Without truth, :func:`view_pair_consistency` checks a multi-view run's error bars by its own
-views: the heights of each pair of views alone against all views', over their predicted σ.
+views: the heights of each pair of views alone against all views', over their predicted σ;
+:func:`pair_height_differences` is its simplest form, view pairs against each other.
 """
 
 from __future__ import annotations
@@ -232,6 +233,69 @@ def view_pair_consistency(pts, tilt_deg, sigma_px, pixel_size_um, tilt_axis_deg=
                         "robust_sd": robust_sd(u[idx]),
                         "within_1sigma": float(np.mean(m <= 1)), "within_2sigma": within2,
                         "consistent": bool(within2 >= CONSISTENT_WITHIN_2SIGMA), "u": u})
+    return out
+
+
+def pair_height_differences(pts, tilt_deg, sigma_px, pairs, pixel_size_um=1.0):
+    """Heights of view pairs compared pairwise: the simplest check of a run's error bars.
+
+    The heights of each view pair ``(a, b)`` of ``pairs`` alone
+    (:func:`semlab.reconstruct.heights_from_tilts`) are compared with every other pair's
+    after removing the least-squares plane of the difference in view-0 ``(x, y)`` (each
+    pair's own offsets and tilt errors; a gauge). The predicted 1σ
+    of a pair's height is the two-view one of :func:`semlab.surface.height_sigma` with the
+    reference view 0's positions exact (grid points) and ``sigma_px`` for the other view's x,
+    ``sqrt(σ_a² cos²θ_b + σ_b² cos²θ_a) / |sin(θ_b − θ_a)|`` × the pixel size; the two pairs'
+    errors are taken independent (pairs that share a view are not, so with right bars the
+    difference tends to be inside its σ). :func:`view_pair_consistency` is the check with
+    the full error model against all views' heights.
+
+    Parameters
+    ----------
+    pts : (N, V, 2) array
+        ``(x, y)`` pixels of the points in every view (view 0 the reference).
+    tilt_deg : (V,) array_like
+        Tilts, degrees.
+    sigma_px : (N,) array
+        1σ of each point's x in every view other than view 0, pixels.
+    pairs : sequence of (a, b)
+        View pairs; every two of them are compared.
+    pixel_size_um : float
+
+    Returns
+    -------
+    list of dict
+        One per two pairs ``(i, k)`` (indices into ``pairs``, ``i < k``): ``pairs``
+        ``[pairs[i], pairs[k]]``, ``diff_um`` ((N,) height difference after the plane),
+        ``sigma_um`` ((N,) its predicted 1σ), ``within_1sigma``, ``within_2sigma``,
+        ``robust_sd_um`` (1.4826 × the median absolute difference).
+    """
+    from .reconstruct import heights_from_tilts
+
+    P = np.asarray(pts, float)
+    th = np.asarray(tilt_deg, float).ravel()
+    s = np.asarray(sigma_px, float).ravel()
+    if P.ndim != 3 or P.shape[2] != 2 or len(s) != len(P) or th.size != P.shape[1]:
+        raise SemlabError(f"pair_height_differences: pts {P.shape}, {len(s)} σ and {th.size} "
+                          "tilts; give (N, V, 2) pixels, N σ and V tilts")
+    z, zs = [], []
+    for a, b in pairs:
+        z.append(heights_from_tilts(P[:, [a, b]], th[[a, b]], pixel_size_um).xyz_um[:, 2])
+        sa, sb = (0.0 if v == 0 else s for v in (a, b))
+        ca, cb = np.cos(np.deg2rad(th[[a, b]]))
+        zs.append(pixel_size_um * np.hypot(sa * cb, sb * ca)
+                  / abs(np.sin(np.deg2rad(th[b] - th[a]))))
+    A = np.column_stack([P[:, 0], np.ones(len(P))])
+    out = []
+    for i in range(len(pairs)):
+        for k in range(i + 1, len(pairs)):
+            d = z[i] - z[k]
+            d = d - A @ np.linalg.lstsq(A, d, rcond=None)[0]
+            sd = np.hypot(zs[i], zs[k])
+            out.append({"pairs": [tuple(pairs[i]), tuple(pairs[k])], "diff_um": d,
+                        "sigma_um": sd, "within_1sigma": float(np.mean(np.abs(d) <= sd)),
+                        "within_2sigma": float(np.mean(np.abs(d) <= 2 * sd)),
+                        "robust_sd_um": float(1.4826 * np.median(np.abs(d)))})
     return out
 
 

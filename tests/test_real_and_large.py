@@ -72,7 +72,8 @@ def test_real_brassica_series_error_bars_hold_pair_to_pair(monkeypatch):
     import semlab.fusion as fu
     from semlab.io import read_image
     from semlab.matching import auto_match
-    from semlab.reconstruct import estimate_tilts, heights_from_tilts
+    from semlab.reconstruct import estimate_tilts
+    from semlab.validation import pair_height_differences
 
     d = shared_path("real_sem", "brassica")
     ims = [read_image(d / f"Brassica0{i}.jpg").data[100:420, 200:648] for i in range(1, 5)]
@@ -89,16 +90,7 @@ def test_real_brassica_series_error_bars_hold_pair_to_pair(monkeypatch):
     v = v.select(np.isfinite(v.sigma_px) & (v.sigma_px > 0))
     assert len(v.pts) > 300
     tilt = estimate_tilts(v.pts, progress=False).tilt_deg
-    z, zs = [], []
-    for a, b in ((0, 1), (2, 3), (1, 2)):
-        z.append(heights_from_tilts(v.pts[:, [a, b]], tilt[[a, b]], 1.0).xyz_um[:, 2])
-        # 1σ of a pair's height (semlab.surface.height_sigma for two views), the reference
-        # view's positions exact (grid points)
-        sa, sb = (0.0 if k == 0 else v.sigma_px for k in (a, b))
-        ca, cb = np.cos(np.deg2rad(tilt[[a, b]]))
-        zs.append(np.hypot(sa * cb, sb * ca) / abs(np.sin(np.deg2rad(tilt[b] - tilt[a]))))
-    xy1 = np.column_stack([v.pts[:, 0], np.ones(len(v.pts))])
-    for i, k in ((0, 1), (0, 2), (1, 2)):
-        dd = z[i] - z[k]
-        dd = dd - xy1 @ np.linalg.lstsq(xy1, dd, rcond=None)[0]
-        assert np.mean(np.abs(dd) <= 2 * np.hypot(zs[i], zs[k])) >= 0.93, (i, k)
+    checks = pair_height_differences(v.pts, tilt, v.sigma_px, ((0, 1), (2, 3), (1, 2)))
+    assert len(checks) == 3
+    for c in checks:
+        assert c["within_2sigma"] >= 0.93, c["pairs"]

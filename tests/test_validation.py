@@ -173,6 +173,37 @@ def test_view_pair_consistency_tells_right_error_bars_from_too_small_ones():
     assert max(abs(x["robust_sd"] - r["robust_sd"]) for x, r in zip(again, right)) < 0.05
 
 
+def test_pair_height_differences_holds_right_bars_and_flags_small_ones():
+    """Pairs (0,1) and (0,2) share only the exact reference view, so with right σ their
+    height difference over its predicted σ is a standard normal."""
+    tilts = (-5.0, 0.0, 5.0)
+    pts = _three_view_points(noise_px=0.05)
+    exact = validation.pair_height_differences(_three_view_points(noise_px=0.0), tilts,
+                                               np.full(2000, 0.05), ((0, 1), (0, 2)), 0.03)
+    assert len(exact) == 1 and np.max(np.abs(exact[0]["diff_um"])) < 1e-9
+    right = validation.pair_height_differences(pts, tilts, np.full(2000, 0.05),
+                                               ((0, 1), (0, 2)), 0.03)
+    r = right[0]
+    assert r["pairs"] == [(0, 1), (0, 2)]
+    assert 0.63 < r["within_1sigma"] < 0.73 and 0.93 < r["within_2sigma"] < 0.975
+    # σ in µm: 0.05 px × cos(−5°) through 5° and 10° of tilt difference at 0.03 µm/px
+    s1 = 0.03 * 0.05 * np.cos(np.deg2rad(5.0)) / np.sin(np.deg2rad(5.0))
+    s2 = 0.03 * 0.05 * np.cos(np.deg2rad(5.0)) / np.sin(np.deg2rad(10.0))
+    assert np.allclose(r["sigma_um"], np.hypot(s1, s2))
+    assert 0.9 < r["robust_sd_um"] / np.hypot(s1, s2) < 1.1
+    small = validation.pair_height_differences(pts, tilts, np.full(2000, 0.025),
+                                               ((0, 1), (0, 2)), 0.03)
+    assert small[0]["within_2sigma"] < 0.75
+    # a plane between the pairs (their own offsets and tilt errors) is a gauge
+    tilted = pts.copy()
+    tilted[:, 2, 0] += 0.5 + 1e-3 * pts[:, 0, 0] - 2e-3 * pts[:, 0, 1]
+    again = validation.pair_height_differences(tilted, tilts, np.full(2000, 0.05),
+                                               ((0, 1), (0, 2)), 0.03)
+    assert abs(again[0]["robust_sd_um"] - r["robust_sd_um"]) < 0.05 * r["robust_sd_um"]
+    with pytest.raises(SemlabError, match="pair_height_differences"):
+        validation.pair_height_differences(pts, tilts, np.full(10, 0.05), ((0, 1), (0, 2)))
+
+
 def test_view_pair_consistency_needs_three_views_and_checks_shapes():
     pts = _three_view_points(n=50)
     sig = np.full(pts.shape[:2], 0.05)
