@@ -47,6 +47,7 @@ import accuracy_matrix as am  # noqa: E402
 import stage9_bar as s9  # noqa: E402
 
 from semlab import fusion, matching, noise, subset  # noqa: E402
+from semlab.variational import _fill  # noqa: E402
 
 PILOTS = ("map", "average", "sharpened", "subsets")
 
@@ -71,19 +72,13 @@ def record(exp):
     return rec, call
 
 
-def _filled(a, ok):
-    """``a`` with the pixels outside ``ok`` set to their nearest pixel inside."""
-    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
-    return a[tuple(idx)]
-
-
 def pilot_field(dm, rec, pilot):
     """The pilot's parallax ``(dx, dy)`` on the map's roi, ``(h, w)`` arrays in pixels."""
     h, w = dm.x1_px.shape
     Y, X = np.mgrid[dm.roi[1]:dm.roi[1] + h, dm.roi[0]:dm.roi[0] + w].astype(float)
     ok = np.asarray(dm.valid, bool) & np.isfinite(dm.x1_px) & np.isfinite(dm.y1_px)
-    dx = _filled(np.where(ok, dm.x1_px - X, 0.0), ok)
-    dy = _filled(np.where(ok, dm.y1_px - Y, 0.0), ok)
+    dx = _fill(np.where(ok, dm.x1_px - X, 0.0), ok)
+    dy = _fill(np.where(ok, dm.y1_px - Y, 0.0), ok)
     if pilot != "map":
         a, b, sa, sw = rec["a"], rec["b"], rec["sa"], rec["sw"]
         m = np.isfinite(a) & np.isfinite(b) & np.isfinite(sa) & np.isfinite(sw)
@@ -166,7 +161,7 @@ def bootstrap(rec, call, dx, dy, poisson=False, seed=0):
     Y, X = np.mgrid[dm.roi[1]:dm.roi[1] + h, dm.roi[0]:dm.roi[0] + w].astype(float)
     xb = np.arange(dmb.roi[0], dmb.roi[0] + dmb.x1_px.shape[1])[None, :]
     ok = np.asarray(dmb.valid, bool) & np.isfinite(dmb.x1_px)
-    bx = _filled(np.where(ok, dmb.x1_px - xb, 0.0), ok)
+    bx = _fill(np.where(ok, dmb.x1_px - xb, 0.0), ok)
     return k, ndimage.map_coordinates(bx, [Y - dmb.roi[1], X - dmb.roi[0]], order=1,
                                       mode="nearest")
 

@@ -245,7 +245,8 @@ def pair_height_differences(pts, tilt_deg, sigma_px, pairs, pixel_size_um=1.0):
     pair's own offsets and tilt errors; a gauge). The predicted 1σ
     of a pair's height is the two-view one of :func:`semlab.surface.height_sigma` with the
     reference view 0's positions exact (grid points) and ``sigma_px`` for the other view's x,
-    ``sqrt(σ_a² cos²θ_b + σ_b² cos²θ_a) / |sin(θ_b − θ_a)|`` × the pixel size; the two pairs'
+    ``sqrt(σ_a² cos²θ_b + σ_b² cos²θ_a) / |sin(θ_b − θ_a)|`` × the pixel size, written out
+    because ``height_sigma`` takes no zero σ; the two pairs'
     errors are taken independent (pairs that share a view are not, so with right bars the
     difference tends to be inside its σ). :func:`view_pair_consistency` is the check with
     the full error model against all views' heights.
@@ -290,12 +291,12 @@ def pair_height_differences(pts, tilt_deg, sigma_px, pairs, pixel_size_um=1.0):
     for i in range(len(pairs)):
         for k in range(i + 1, len(pairs)):
             d = z[i] - z[k]
-            d = d - A @ np.linalg.lstsq(A, d, rcond=None)[0]
+            d = d - A @ gauge_plane(A, d)
             sd = np.hypot(zs[i], zs[k])
             out.append({"pairs": [tuple(pairs[i]), tuple(pairs[k])], "diff_um": d,
                         "sigma_um": sd, "within_1sigma": float(np.mean(np.abs(d) <= sd)),
                         "within_2sigma": float(np.mean(np.abs(d) <= 2 * sd)),
-                        "robust_sd_um": float(1.4826 * np.median(np.abs(d)))})
+                        "robust_sd_um": float(robust_sd(d, about=0.0))})
     return out
 
 
