@@ -1,0 +1,123 @@
+"""Three views against their own outer pair, the same draw, at the same points (issue #13).
+
+A three-view cell of ``benchmarks/accuracy_matrix.py`` (e.g. −5/0/+5°) is matched by
+:func:`semlab.matching.auto_match` three ways, on the same images:
+
+- ``three views``: all views, the defaults (stage 9 scaled by the held-out view,
+  :func:`semlab.fusion.held_out_scale`);
+- ``three views, agreement``: all views, stage 9 with the two-view agreement scale on every
+  view pair (``_held_out_positions`` made to find no held-out view, as
+  ``stage9_three_view_scale.py --mode agreement``);
+- ``outer pair``: only the first and the last view (a two-view run: noise-plus-bias weight,
+  agreement scale);
+
+and with stage 9 off (the subsets alone, where the three runs agree to the digit on the
+outer view's positions). Heights come from the views each run matched (the known tilts,
+``reconstruct.heights_from_tilts``), scored against the truth (plane of the error removed,
+``validation.height_errors``) at the points all runs accepted in all their views, beside
+OpenCV DeepFlow from view 0 to every other view at the same points, through the same
+three-view heights. It separates what the multi-view stages cost from what the draw of the
+scene does: last session's 13.5 against 16.0 nm came from two different draws.
+
+Run:  python benchmarks/three_view_pair.py --cells polished/realistic/-5/0/5 --seed 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import accuracy_matrix as am  # noqa: E402
+
+from semlab import matching, reconstruct, validation  # noqa: E402
+
+
+def _accepted(ims, agreement=False, **kw):
+    """``{view-0 (x, y): (V, 2) positions}`` of the points accepted in every view."""
+    held = matching._held_out_positions
+    if agreement:
+        matching._held_out_positions = lambda *a, **k: None
+    try:
+        r = matching.auto_match(ims, progress=False, **kw)
+    finally:
+        matching._held_out_positions = held
+    ok = r.valid & np.all(np.isfinite(r.pts.reshape(len(r.pts), -1)), axis=1)
+    return {tuple(np.round(p[0], 3)): p for p in r.pts[ok]}
+
+
+def _errors_nm(exp, pts, tilts):
+    z = reconstruct.heights_from_tilts(pts, list(tilts), exp.pixel_size_um).xyz_um[:, 2]
+    zt = validation.true_height_at(exp.truth_dir, pts[:, 0])
+    e = validation.height_errors(z, zt, pts[:, 0])
+    return 1000 * e["rmse_um"], 1000 * float(1.4826 * np.median(np.abs(e["err_um"] -
+                                                                          np.median(e["err_um"]))))
+
+
+def run_cell(regime, noise, tilts, seed):
+    """One results row (a markdown line) for a cell."""
+    exp = am.make_cell(tempfile.mkdtemp(), regime, noise, tilts, seed)
+    views = exp.views()[:len(tilts)]
+    outer = [views[0], views[-1]]
+    runs = {"three views": lambda **kw: _accepted(views, **kw),
+            "three views, agreement": lambda **kw: _accepted(views, agreement=True, **kw),
+            "outer pair": lambda **kw: _accepted(outer, **kw)}
+    res = {name: f() for name, f in runs.items()}
+    subsets = {"three views": _accepted(views, variational_fusion=False),
+               "outer pair": _accepted(outer, variational_fusion=False)}
+    keys = sorted(set.intersection(*[set(r) for r in list(res.values())
+                                     + list(subsets.values())]))
+    p0 = np.array(keys, float)
+    flows = {j: am.dense_flows(views[0], views[j])[0] for j in range(1, len(views))}
+    df = am.multiview_reference_matches(views, p0, 0, flows)["DeepFlow"]
+    df_rmse, df_rsig = _errors_nm(exp, df, tilts)
+    cols = []
+    for name, r in res.items():
+        p = np.array([r[k] for k in keys])
+        rmse, rsig = _errors_nm(exp, p, tilts if p.shape[1] == len(tilts) else
+                                (tilts[0], tilts[-1]))
+        cols.append(f"{rmse:.1f} / {rsig:.1f} nm, {rmse / df_rmse:.2f}×")
+    sub = []
+    for name, r in subsets.items():
+        p = np.array([r[k] for k in keys])
+        outer_tilts = tilts if p.shape[1] == len(tilts) else (tilts[0], tilts[-1])
+        sub.append(f"{_errors_nm(exp, p, outer_tilts)[0]:.1f}")
+    n_all = ", ".join(str(len(r)) for r in res.values())
+    return (f"| {regime} {noise} {am.tilts_label(tilts)} | {seed} | {len(keys)} ({n_all}) | "
+            + " | ".join(cols) + f" | {df_rmse:.1f} / {df_rsig:.1f} nm | " + " / ".join(sub)
+            + " |")
+
+
+HEAD = ("| cell | seed | points scored (accepted: three views, agreement, pair) | three views "
+        "(default): RMSE / robust σ, ÷ DeepFlow | three views, agreement scale | outer pair "
+        "alone | DeepFlow (three views) | subsets alone: three views / pair (RMSE, nm) |\n"
+        "|---|---|---|---|---|---|---|---|")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cells", required=True,
+                    help="comma-separated REGIME/NOISE/T0/T1/T2 (accuracy_matrix.py's form)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    cells = [am._parse_cell(c) for c in args.cells.split(",")]
+    if any(len(t) < 3 for _, _, t in cells):
+        raise SystemExit("--cells: give three or more tilts per cell (REGIME/NOISE/T0/T1/T2)")
+    print(HEAD, flush=True)
+    for regime, noise, tilts in cells:
+        t0 = time.perf_counter()
+        print(run_cell(regime, noise, tilts, args.seed), flush=True)
+        print(f"<!-- {regime}/{noise}/{'/'.join(f'{t:g}' for t in tilts)}@{args.seed}: "
+              f"{time.perf_counter() - t0:.0f} s -->", flush=True)
+
+
+if __name__ == "__main__":
+    main()
