@@ -1,11 +1,13 @@
-"""Three or more views: stage 9's held-out scale against the two-view agreement scale (#13).
+"""Three or more views: stage 9's held-out views against the two-view agreement scale alone (#13).
 
-With three or more views stage 9 of :func:`semlab.matching.auto_match` scales each map's σ by
-how well the average predicts another view's subset matches
-(:func:`semlab.fusion.held_out_scale`, posterior σ as the weight); with two, by the map's
-local agreement with the subsets (:func:`semlab.fusion.agreement_scale`, noise-plus-bias σ
-as the weight). ``--mode agreement`` runs the two-view mechanism on every view pair of a
-multi-view run (``_held_out_positions`` made to find no held-out view) and measures:
+With three or more views stage 9 of :func:`semlab.matching.auto_match` runs the two-view
+mechanism on every view pair (the map's local agreement scale,
+:func:`semlab.fusion.agreement_scale`, noise-plus-bias σ as the weight) and keeps a view's
+average only if it predicts the other views' subset matches better than the subset matches
+alone (:func:`semlab.fusion.held_out_error`; since 2026-12-07: before, the held-out views
+scaled the map's posterior σ, ``fusion.held_out_scale``, and the results file of 2026-12-07
+06:09–06:21 UTC compares that scale). ``--mode agreement`` leaves the held-out views out
+(``_held_out_positions`` made to find none): the two-view mechanism alone. It measures:
 
 - ``--cells``: accuracy-matrix cells (``benchmarks/accuracy_matrix.py --sets =auto``, the
   same scoring; e.g. the four three-view cells), written to ``--out``;

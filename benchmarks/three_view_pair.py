@@ -3,8 +3,10 @@
 A three-view cell of ``benchmarks/accuracy_matrix.py`` (e.g. −5/0/+5°) is matched by
 :func:`semlab.matching.auto_match` three ways, on the same images:
 
-- ``three views``: all views, the defaults (stage 9 scaled by the held-out view,
-  :func:`semlab.fusion.held_out_scale`);
+- ``three views``: all views, the defaults (at ab3d6fa, the results file's code: stage 9's
+  map σ scaled by the held-out view, ``fusion.held_out_scale``; since 2026-12-07 the
+  two-view mechanism on each pair, kept where the held-out view says so,
+  :func:`semlab.fusion.held_out_error`);
 - ``three views, agreement``: all views, stage 9 with the two-view agreement scale on every
   view pair (``_held_out_positions`` made to find no held-out view, as
   ``stage9_three_view_scale.py --mode agreement``);

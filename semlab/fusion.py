@@ -15,11 +15,12 @@ At the sparse points of automatic matching the two estimates are combined instea
 (:func:`inverse_variance`, stage 9 of :func:`semlab.matching.auto_match`): there the
 average beats the subset matches on fifteen of the sixteen accuracy-matrix cells measured
 (docs/accuracy.md, "Stage 9: the subset matches averaged with the variational map at
-the points"). There the map's σ is scaled where its errors are larger than it says: by
-:func:`held_out_scale` (how well the average predicts a third view) when there is one, by
-:func:`agreement_scale` (how the two disagree around each point) when there is not. With two
-views the weight uses the map's noise-plus-bias σ and the average's 1σ its posterior σ
-(:func:`inverse_variance`'s ``weight_sigma_b``).
+the points"). There the map's σ is scaled where its errors are larger than it says, by
+:func:`agreement_scale` (how the two disagree around each point); the weight uses the map's
+noise-plus-bias σ and the average's 1σ its posterior σ (:func:`inverse_variance`'s
+``weight_sigma_b``). With a third view, :func:`held_out_error` (how well the average and the
+subset match each predict that view, their shared noise counted) decides whether the map
+enters at all.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from .errors import SemlabError
 from .stats import robust_sd
 
 __all__ = ["min_sigma_choice", "fuse_heightmaps", "inverse_variance", "sample_parallax",
-           "agreement_scale", "held_out_scale"]
+           "agreement_scale", "held_out_error"]
 
 
 def min_sigma_choice(z_a, sigma_a, valid_a, z_b, sigma_b, valid_b):
@@ -248,54 +249,62 @@ def _median_scale(d2, va, vb):
     return np.where(excess(np.zeros(len(d2))) > 0, 2.0 ** hi, 1.0)
 
 
-def held_out_scale(a, sigma_a, b, sigma_b, c):
-    """How much larger ``sigma_b`` must be for the average of ``a`` and ``b`` to agree best
-    with ``c``, an estimate of the same quantities whose errors are their own.
+def held_out_error(estimates, c, shared):
+    """Each estimate's mean-square error, up to one constant, from how well it predicts
+    held-out estimates whose errors partly share its own.
 
-    :func:`agreement_scale` compares ``a`` with ``b`` only, so it takes ``σ_a`` as calibrated:
-    where ``a``'s σ is conservative, ``b``'s excess error hides in ``a``'s unused variance
-    (two estimates cannot separate two variance components). A third estimate can: the scale
-    here is the ``k ≥ 1`` (``inf``: ``b`` unused) whose inverse-variance average
-    (:func:`inverse_variance` with ``k σ_b``) is closest to ``c`` in the robust standard
-    deviation (1.4826 × the median absolute deviation) of ``average − c`` — the weight that
-    predicts held-out data best, whatever ``a``'s and ``b``'s σ claim. ``c``'s own error adds
-    the same variance for every ``k``, so it does not move the choice. Searched on
-    ``k = 2^(i/4)``, ``i = 0 … 40`` (1 to 1024), and ``inf``.
+    For an estimate ``f`` of ``t`` and another estimate ``c`` of the same quantity,
+    ``E(f − t)² = E(f − c)² − E(c − t)² + 2 Cov(f − t, c − t)``. The middle term is the same
+    for every ``f``, so ``E(f − c)² + 2 Cov(f − t, c − t)`` ranks estimates by their
+    mean-square error, whatever their σ claim. Without the covariance term (the errors taken
+    as independent) an estimate whose error ``c`` shares looks better than it is: stage 9 of
+    :func:`semlab.matching.auto_match` predicts a view's position from another view's subset
+    match, which shares the reference view's subset, and so its noise, with the subset match
+    being judged. Here ``E(f − c)²`` is the robust variance (1.4826 × the median absolute
+    deviation, squared) of ``f − c`` after removing its median (a few outliers do not rank the
+    estimates), and the covariance is the mean of ``shared``; each held-out column is
+    compared on the rows where every estimate and that column are finite, and the columns'
+    sums are added.
 
     Parameters
     ----------
-    a, b : (N,) arrays
-        The two estimates to average (e.g. a point's x position in one view from its subset
-        match and from the variational map), pixels.
-    sigma_a, sigma_b : (N,) arrays
-        Their 1σ.
+    estimates : (M, N) array
+        ``M`` estimates of the same ``N`` quantities (e.g. a point's x position in one view:
+        its subset match, and its average with the variational map), pixels; NaN where not
+        available.
     c : (N, L) array
-        ``L`` held-out estimates of the same ``N`` quantities (e.g. the x position predicted
-        from another view's match), NaN where not available. Each column is compared after
-        removing its median difference.
+        ``L`` held-out estimates of the same quantities, NaN where not available.
+    shared : (M, N, L) array
+        ``Cov(f_m − t, c_l − t)`` per row: the error covariance of estimate ``m`` with column
+        ``l`` (squared units of the estimates).
 
     Returns
     -------
-    float
-        ``k``; 1.0 with fewer than 8 rows where ``a``, ``b`` (and their σ) and a column of
-        ``c`` are all usable.
+    (M,) array
+        The ranking errors (squared units); ``inf`` for every estimate with fewer than 8
+        rows usable in any column.
     """
-    a, sa, b, sb = (np.asarray(v, float).ravel() for v in (a, sigma_a, b, sigma_b))
-    c = np.asarray(c, float).reshape(len(a), -1)
-    ok = _usable(a, sa, b, sb)
-    cols = [(ok & np.isfinite(c[:, i])) for i in range(c.shape[1])]
-    if sum(int(m.sum()) for m in cols) < 8:
-        return 1.0
-
-    def spread(k):
-        fused = inverse_variance(a, sa, b, k * sb)[0]
-        r = np.concatenate([fused[m] - c[m, i] - np.median(fused[m] - c[m, i])
-                            for i, m in enumerate(cols) if m.any()])
-        return robust_sd(r, about=0.0)
-
-    ks = [2.0 ** (i / 4) for i in range(41)] + [np.inf]
-    loss = [spread(k) for k in ks]
-    return float(ks[int(np.argmin(loss))])
+    f = np.asarray(estimates, float)
+    f = f.reshape(len(f), -1)
+    m, n = f.shape
+    c = np.asarray(c, float).reshape(n, -1)
+    cov = np.asarray(shared, float)
+    if cov.shape != (m, n, c.shape[1]):
+        raise SemlabError(f"held_out_error: {m} estimates of {n} values and {c.shape[1]} "
+                          f"held-out columns need shared of shape {(m, n, c.shape[1])}, got "
+                          f"{cov.shape}")
+    err = np.zeros(m)
+    used = 0
+    for col in range(c.shape[1]):
+        ok = np.isfinite(c[:, col]) & np.all(np.isfinite(f), axis=0) \
+            & np.all(np.isfinite(cov[:, :, col]), axis=0)
+        if ok.sum() < 8:
+            continue
+        used += 1
+        for i in range(m):
+            r = f[i, ok] - c[ok, col]
+            err[i] += robust_sd(r) ** 2 + 2 * np.mean(cov[i, ok, col])
+    return err if used else np.full(m, np.inf)
 
 
 def sample_parallax(dense, pts_px, sigma="sigma_px"):

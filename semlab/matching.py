@@ -192,14 +192,17 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
        variational parallax map (:func:`semlab.variational.variational_parallax`, seeded by
        the accepted points) is sampled at the accepted points, and each point's position is
        the inverse-variance average of its subset match and that estimate
-       (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's), the map's σ
-       scaled by the held-out views (three or more: :func:`semlab.fusion.held_out_scale`)
-       or by its agreement with the subsets around each point (two views: its 100 nearest,
-       so a map wrong on part of the view only is down-weighted there). With two views the map is
+       (:func:`semlab.fusion.inverse_variance`; its 1σ is the average's). The map is
        weighted by its error for the surface at hand, its noise plus the prior's plug-in
        bias (``DenseParallax.weight_sigma_px``), and the average's 1σ uses its posterior
        σ, which also holds the prior's roughness (about twice the error on flat parts with
-       the band prior) and so holds at walls where the plug-in bias does not. The two average
+       the band prior) and so holds at walls where the plug-in bias does not; both scaled
+       by the map's agreement with the subsets around each point (its 100 nearest, so a map
+       wrong on part of the view only is down-weighted there). With three or more views
+       the average replaces a view's subset matches only if it predicts the other views'
+       matches better than they do (:func:`semlab.fusion.held_out_error`, counting the
+       reference view's noise, which the prediction shares with the subset match). The
+       two average
        the relief differently (the subset over its square, the variational map through a
        per-pixel smoothness prior), so their errors are partly independent. Where the two
        disagree by more than 3σ (the map misses a tall object's parallax) the subset match
@@ -355,15 +358,16 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         prior (single thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
         ``run_stereo`` 34 → 182 s), and the band prior makes the map ~2.5× slower again (the
         demo pair's map 6–8 → 16–19 s, 2026-12-06, after 747e202). The map's σ is
-        scaled (k ≥ 1): with three or more views by how well the average predicts each
-        other view's subset matches (:func:`semlab.fusion.held_out_scale`), with two by its
-        agreement with the subset matches around each point (its 100 nearest,
-        :func:`semlab.fusion.agreement_scale` with ``xy``; 1 at 88–98 % of the points of the
-        matrix cells, and on the real ``pollen_pot1`` pairs the grain's pair-to-pair residual
-        0.206 → 0.192 px against one scale for the view). On the real ``pollen_pot1``
-        view 1 the held-out scale is 13.5 (the map nearly unused) where the whole-view
-        agreement scale said 1.44 and the stage made the pair-to-pair agreement worse
-        (docs/accuracy.md, "Stage 9 on real data without truth"). False: the subset matches
+        scaled (k ≥ 1) by its agreement with the subset matches around each point (its 100
+        nearest, :func:`semlab.fusion.agreement_scale` with ``xy``; 1 at 88–98 % of the
+        points of the matrix cells, and on the real ``pollen_pot1`` pairs the grain's
+        pair-to-pair residual 0.206 → 0.192 px against one scale for the view). With three
+        or more views the held-out views decide whether a view's average is kept
+        (:func:`semlab.fusion.held_out_error`; since 2026-12-07, before a held-out scale
+        that, uncorrected for what the prediction shares with the subset match, favoured
+        the subsets and cost 0.6–5.6 nm on the three-view cells:
+        ``benchmarks/results/three_view_pair.md``, docs/accuracy.md "Stage 9 with three or
+        more views: a held-out decision"). False: the subset matches
         alone.
     variational_params : semlab.variational.VariationalParams, optional
         Parameters of stage 9's maps (default ``VariationalParams()``); recorded with the
@@ -823,10 +827,11 @@ def _filter_multiview(st):
 def _stage_variational(st):
     """Stage 9: the points' positions in each view whose match there passed its tests,
     averaged with the variational parallax map of that view pair (seeded by them), by
-    inverse variance, the map's σ scaled by how well the average predicts the other views
-    (:func:`semlab.fusion.held_out_scale`, with three or more views) or else by its agreement
-    with the subset matches around each point (:func:`semlab.fusion.agreement_scale` with
-    ``xy``); their 1σ become the
+    inverse variance, the map weighted by its noise-plus-bias σ and the average's 1σ from
+    its posterior σ, both scaled by the map's agreement with the subset matches around each
+    point (:func:`semlab.fusion.agreement_scale` with ``xy``); with three or more views the
+    average is kept only where it predicts the other views' matches better than the subset
+    matches alone do (:func:`semlab.fusion.held_out_error`). Their 1σ become the
     average's (``st.fused_sig``)."""
     if not st.params.variational_fusion:
         return
@@ -852,16 +857,9 @@ def _stage_variational(st):
         # as the untiled run does, so the two agree (each tile's seeds would give its own)
         M = st.affine[j]
         plane = [float(M[0, 2]), float(M[0, 0] - 1.0), float(M[0, 1])]
-        # the map's σ scaled (k ≥ 1) where its errors are larger than it says, e.g. relief its
-        # prior flattens: with another view, by how well the average predicts that view's
-        # subset matches (held out: their errors are their own); with two views, by the
-        # map's agreement with the subset matches around each point (its 100 nearest: a map
-        # wrong on a tall object only is down-weighted there), the subsets' σ taken as
-        # calibrated
-        held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
         vp = st.params.variational_params or variational.VariationalParams()
         dm = _variational_map(st.ims[st.ref], st.ims[j], st.out[idx][:, [st.ref, j]],
-                              replace(vp, weight_sigma=held is None),
+                              replace(vp, weight_sigma=True),
                               calibration={"parallax_plane": plane})
         xy1, s1 = fusion.sample_parallax(dm, st.grid[idx])
         # only estimates of the same position are averaged: where the map is off the
@@ -871,24 +869,62 @@ def _stage_variational(st):
         with np.errstate(invalid="ignore"):
             off = np.abs(xy1[:, 0] - st.out[idx, j, 0]) > 3 * np.hypot(sig[idx, j], s1)
         xy1[off] = np.nan
-        # The weight: with another view, the posterior σ scaled by the held-out prediction
-        # (the data set the weight); with two views, the map's error for the surface at
-        # hand, its noise plus the prior's plug-in bias (`s1w`; the posterior σ also holds
-        # the prior's roughness, ~2× the flats' error with the band prior, and gave the
-        # subsets too much weight). The average's bar from the posterior σ either way: it
-        # also holds where the plug-in bias misses the smoothing of a band's walls
-        if held is not None:
-            s1w = s1
-            k = fusion.held_out_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1, held)
-        else:
-            s1w = fusion.sample_parallax(dm, st.grid[idx], sigma="weight_sigma_px")[1]
-            k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w,
-                                       xy=st.grid[idx])
+        # The weight: the map's error for the surface at hand, its noise plus the prior's
+        # plug-in bias (`s1w`; the posterior σ also holds the prior's roughness, ~2× the
+        # flats' error with the band prior, and gave the subsets too much weight). The
+        # average's bar from the posterior σ: it also holds where the plug-in bias misses
+        # the smoothing of a band's walls. Both scaled (k ≥ 1) where the map disagrees with
+        # the subset matches around the point (its 100 nearest: a map wrong on a tall
+        # object only is down-weighted there), the subsets' σ taken as calibrated
+        s1w = fusion.sample_parallax(dm, st.grid[idx], sigma="weight_sigma_px")[1]
+        k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w,
+                                   xy=st.grid[idx])
         fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1,
                                                  weight_sigma_b=k * s1w)
+        held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
+        if held is not None and not _average_predicts_better(
+                st.out[idx, j, 0], fused[:, 0], wv, st.sig_ap[idx, j], k * s1w, held):
+            continue    # the held-out views' matches say the map makes it worse
         st.out[idx, j] = fused
         used = wv > 0
         st.fused_sig[idx[used], j] = s_f[used]
+
+
+def _average_predicts_better(a, fused, weight_b, sigma_noise_a, sigma_b, held):
+    """Whether stage 9's average ``fused`` of the subset matches ``a`` ((N,) x positions,
+    pixels) predicts the held-out views' matches (``held``: ``(predictions, beta)`` of
+    :func:`_held_out_positions`) better than ``a`` alone, by
+    :func:`semlab.fusion.held_out_error`, which needs each estimate's error covariance with
+    the prediction ``c = … + β x_other``. ``c`` comes from another view's subset match made
+    with the same reference subset as ``a``, so the reference view's noise enters both: with
+    equal noise in the views (half of a subset match's noise variance ``σ_a²``,
+    ``sigma_noise_a``, from each image) ``β σ_a² / 2``. The map shares it through the pixels
+    it pools (an average over a larger support than the subset's: about half of its own
+    noise variance, at most ``σ_a² / 2``): ``β min(σ_b, σ_a)² / 2`` with ``σ_b`` its weight σ
+    (``sigma_b``).
+
+    Left out: the subset's model error (the relief its window averages), which ``c`` also
+    repeats (the relief's parallax in another view is proportional to this view's), so the
+    comparison still leans to the subsets where the relief is sharp. Counted (as ``m_a²``) it
+    kept the map on a three-view scene with sharp walls (``tests/test_matching.py``'s
+    ``Scene`` with ``edge_um=0.1``, noise 0.3), halving the height error there, but on the
+    real ``pollen_pot1`` grain it let in a map that broke the pair-to-pair check (86 % within
+    2σ; docs/accuracy.md, "Stage 9 with three or more views: a held-out decision").
+    """
+    from . import fusion
+
+    pred, beta = held
+    sa = np.asarray(sigma_noise_a, float)
+    sb = np.asarray(sigma_b, float)
+    w = np.asarray(weight_b, float)
+    # rows without a finite σ get a NaN covariance, which held_out_error leaves out
+    va = np.where(np.isfinite(sa), sa, np.nan) ** 2
+    vb = np.fmin(np.where(np.isfinite(sb), sb, np.nan), sa) ** 2
+    vb = np.where(w > 0, vb, 0.0)
+    half = 0.5 * np.asarray(beta, float)[None, :]
+    shared = np.stack([va[:, None] * half, ((1 - w) * va + w * vb)[:, None] * half])
+    err = fusion.held_out_error(np.stack([a, fused]), pred, shared)
+    return bool(err[1] <= err[0])
 
 
 def _held_out_positions(pts, view_valid, ref, j, idx):
@@ -902,11 +938,13 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
 
     Returns
     -------
-    (len(idx), L) array or None
-        One column per other view with at least 8 such points, NaN where the point is not
-        valid there; None without such a view.
+    (predictions, beta) or None
+        ``predictions``: (len(idx), L) array, one column per other view with at least 8 such
+        points, NaN where the point is not valid there; ``beta``: (L,) array, each column's
+        coefficient of the other view's x (the factor its match's error enters with). None
+        without such a view.
     """
-    cols = []
+    cols, betas = [], []
     for other in range(pts.shape[1]):
         if other in (ref, j):
             continue
@@ -923,7 +961,8 @@ def _held_out_positions(pts, view_valid, ref, j, idx):
             mad = robust_sd(r[use])
             fit = use & (np.abs(r - np.median(r[use])) <= 4 * mad) if mad > 0 else use
         cols.append(np.where(use, X @ beta, np.nan))
-    return np.column_stack(cols) if cols else None
+        betas.append(float(beta[2]))
+    return (np.column_stack(cols), np.array(betas)) if cols else None
 
 
 def _variational_map(view0, view1, seeds, params, tiling=None, calibration=None):

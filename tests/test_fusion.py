@@ -197,32 +197,36 @@ def test_local_agreement_scale_sees_an_estimate_wrong_on_part_of_the_view():
                           np.ones(5))
 
 
-def test_held_out_scale_sees_the_excess_error_that_conservative_sigma_hides():
-    """``a``'s σ three times its errors, ``b``'s errors 3× its σ: compared with each other,
-    ``b``'s excess partly hides in ``a``'s unused variance (agreement scale ~2.5, and the
-    average is worse than ``a`` alone), but an independent third estimate shows the average
-    is best with ``b`` nearly unused (held-out k ≫ 1), and it is; where ``b`` is better than
-    it says, the held-out k is the optimum's (1.5 here: the ratio of the two σ's
-    overstatements) and keeps the average's gain."""
+def test_held_out_error_ranks_estimates_counting_the_noise_they_share_with_it():
+    """A subset-like estimate ``a`` (reference noise plus its own), a better estimate ``b``
+    (a fifth of the variance, sharing part of the reference noise) and their average, judged
+    by a held-out estimate ``c = t + β (own − reference noise)``, which shares the reference
+    noise with ``a``: without the covariance the comparison prefers ``a`` to the average
+    (although the average's error is less than half of ``a``'s), with it the ranking is the
+    true mean-square error's, up to one constant; a bad ``b`` still loses. Shape errors are
+    refused, and too few usable rows give ``inf``."""
     rng = np.random.default_rng(4)
-    n = 4000
-    truth = rng.normal(0, 5, n)
-    ea, sb = 0.05, rng.uniform(0.05, 0.12, n)
-    sa = np.full(n, 3 * ea)                         # conservative: three times the error
-    a = truth + ea * rng.standard_normal(n)
-    c = (truth + 0.08 * rng.standard_normal(n) + 1.0)[:, None]   # its own error and offset
-    bad = truth + 3 * sb * rng.standard_normal(n)
-    err = lambda x: np.sqrt(np.mean((x - truth) ** 2))              # noqa: E731
-    avg = lambda b, k: fusion.inverse_variance(a, sa, b, k * sb)[0]  # noqa: E731
-    ka = fusion.agreement_scale(a, sa, bad, sb)
-    k = fusion.held_out_scale(a, sa, bad, sb, c)
-    assert k > 2 * ka, (k, ka)
-    assert err(avg(bad, k)) < 0.75 * err(avg(bad, ka)), (err(avg(bad, k)), err(avg(bad, ka)))
-    assert err(avg(bad, ka)) > err(a)               # the agreement scale's average loses
-    good = truth + 0.5 * sb * rng.standard_normal(n)                 # better than it says
-    kg = fusion.held_out_scale(a, sa, good, sb, c)
-    assert 1.0 <= kg < 2.0 and err(avg(good, kg)) < 0.9 * err(a), (kg, err(avg(good, kg)), err(a))
-    # held-out estimates missing on most rows, and too few rows: the usable ones, or 1
-    c_sparse = np.where(rng.random((n, 1)) < 0.2, c, np.nan)
-    assert fusion.held_out_scale(a, sa, bad, sb, c_sparse) > 2 * ka
-    assert fusion.held_out_scale(a[:5], sa[:5], bad[:5], sb[:5], c[:5]) == 1.0
+    n, beta = 20000, 2.0
+    t = rng.normal(0, 5, n)
+    ref, own, other = (0.1 * rng.standard_normal(n) for _ in range(3))
+    a = t + own - ref                                 # σ_a² = 0.02, half of it reference
+    b = t - 0.3 * ref + 0.01 * rng.standard_normal(n)  # σ_b² = 0.001, mostly reference
+    avg = fusion.inverse_variance(a, np.full(n, 0.02 ** 0.5), b, np.full(n, 0.001 ** 0.5))[0]
+    c = (t + beta * (other - ref) + 3.0)[:, None]     # an offset: compared after its median
+    mse = [np.mean((x - t) ** 2) for x in (a, b, avg)]
+    est = np.stack([a, b, avg])
+    naive = fusion.held_out_error(est, c, np.zeros((3, n, 1)))
+    assert naive[0] < naive[2], naive                 # the shared noise favours a
+    wa = 0.001 / (0.02 + 0.001)                       # a's weight in the average
+    cov_a, cov_b = beta * 0.01, beta * 0.3 * 0.01     # Cov(x − t, c − t) = β × its ref share
+    shared = np.stack([np.full((n, 1), v) for v in (cov_a, cov_b, wa * cov_a + (1 - wa) * cov_b)])
+    err = fusion.held_out_error(est, c, shared)
+    assert np.argsort(err).tolist() == np.argsort(mse).tolist(), (err, mse)
+    const = err - np.array(mse)                       # E(c − t)², the same for all three
+    assert np.ptp(const) < 0.1 * np.mean(np.abs(const)), const
+    bad = t + 0.3 * rng.standard_normal(n)            # worse than a, sharing nothing
+    e2 = fusion.held_out_error(np.stack([a, bad]), c, shared[[0, 1]] * [[[1]], [[0]]])
+    assert e2[0] < e2[1], e2
+    with pytest.raises(SemlabError, match="shared of shape"):
+        fusion.held_out_error(est, c, np.zeros((2, n, 1)))
+    assert np.all(np.isinf(fusion.held_out_error(est[:, :5], c[:5], shared[:, :5])))

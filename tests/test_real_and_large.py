@@ -66,9 +66,12 @@ def test_real_brassica_series_error_bars_hold_pair_to_pair(monkeypatch):
     """Four real SEM views of a pollen grain (3DSEM Brassica, JPEG, tilts unknown; a
     448×320 crop): the heights from view pairs (0,1), (2,3) and (1,2) of the all-view points
     agree within their error bars (≥ 93 % within 2σ on each difference). Stage 9 leaves the
-    variational maps of views 1 and 2 nearly out (held-out scales > 8): with the former
-    agreement scale (k 2.4 and 1.4) they entered, and two of the differences fell to 91 %
-    within 2σ at 1.03–1.06 of their σ (2026-12-06)."""
+    variational maps of views 1 and 2 out: the held-out views' matches are predicted better
+    by the subset matches alone (fusion.held_out_error, the shared reference noise counted).
+    With the maps in (the former agreement scale, k 2.4 and 1.4) two of the differences fell
+    to 91 % within 2σ (2026-12-06); with the subsets' model error also counted as shared
+    they are kept and the differences are 94–96 % within 2σ, robust SD 3.9–5.5 against
+    2.9–3.6 (2026-12-07, docs/accuracy.md)."""
     import semlab.fusion as fu
     from semlab.io import read_image
     from semlab.matching import auto_match
@@ -77,16 +80,17 @@ def test_real_brassica_series_error_bars_hold_pair_to_pair(monkeypatch):
 
     d = shared_path("real_sem", "brassica")
     ims = [read_image(d / f"Brassica0{i}.jpg").data[100:420, 200:648] for i in range(1, 5)]
-    scales = []
-    real = fu.held_out_scale
+    kept = []
+    real = fu.held_out_error
 
     def spy(*a):
-        scales.append(real(*a))
-        return scales[-1]
+        e = real(*a)
+        kept.append(bool(e[1] <= e[0]))
+        return e
 
-    monkeypatch.setattr(fu, "held_out_scale", spy)
+    monkeypatch.setattr(fu, "held_out_error", spy)
     v = auto_match(ims, progress=False).only_valid()
-    assert len(scales) == 2 and min(scales) > 8, scales
+    assert kept == [False, False], kept
     v = v.select(np.isfinite(v.sigma_px) & (v.sigma_px > 0))
     assert len(v.pts) > 300
     tilt = estimate_tilts(v.pts, progress=False).tilt_deg
