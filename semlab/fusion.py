@@ -263,8 +263,9 @@ def held_out_error(estimates, c, shared):
     being judged. Here ``E(f − c)²`` is the robust variance (1.4826 × the median absolute
     deviation, squared) of ``f − c`` after removing its median (a few outliers do not rank the
     estimates), and the covariance is the mean of ``shared``; each held-out column is
-    compared on the rows where every estimate and that column are finite, and the columns'
-    sums are added.
+    compared on the rows where every estimate, that column and its ``shared`` values are
+    finite (columns with fewer than 8 such rows are left out), and the columns' sums are
+    added.
 
     Parameters
     ----------
@@ -281,8 +282,8 @@ def held_out_error(estimates, c, shared):
     Returns
     -------
     (M,) array
-        The ranking errors (squared units); ``inf`` for every estimate with fewer than 8
-        rows usable in any column.
+        The ranking errors (squared units); ``inf`` for every estimate when no column has 8
+        usable rows.
     """
     f = np.asarray(estimates, float)
     f = f.reshape(len(f), -1)

@@ -901,7 +901,8 @@ def _average_predicts_better(a, fused, weight_b, sigma_noise_a, sigma_b, held):
     ``sigma_noise_a``, from each image) ``β σ_a² / 2``. The map shares it through the pixels
     it pools (an average over a larger support than the subset's: about half of its own
     noise variance, at most ``σ_a² / 2``): ``β min(σ_b, σ_a)² / 2`` with ``σ_b`` its weight σ
-    (``sigma_b``).
+    (``sigma_b``). Without 8 usable rows in any held-out column (both errors ``inf``) the
+    average is kept, as with two views.
 
     Left out: the subset's model error (the relief its window averages), which ``c`` also
     repeats (the relief's parallax in another view is proportional to this view's), so the
