@@ -40,6 +40,7 @@ sys.path.insert(0, str(HERE))
 import accuracy_matrix as am  # noqa: E402
 
 from semlab import matching, reconstruct, validation  # noqa: E402
+from semlab.stats import robust_sd  # noqa: E402
 
 
 def _accepted(ims, agreement=False, **kw):
@@ -56,11 +57,13 @@ def _accepted(ims, agreement=False, **kw):
 
 
 def _errors_nm(exp, pts, tilts):
+    """Height RMSE and robust σ (nm) of matches ``pts`` (N, V, 2) made at ``tilts`` (V
+    views, or the first and last of them when V is 2), plane of the error removed."""
+    tilts = tilts if pts.shape[1] == len(tilts) else (tilts[0], tilts[-1])
     z = reconstruct.heights_from_tilts(pts, list(tilts), exp.pixel_size_um).xyz_um[:, 2]
     zt = validation.true_height_at(exp.truth_dir, pts[:, 0])
     e = validation.height_errors(z, zt, pts[:, 0])
-    return 1000 * e["rmse_um"], 1000 * float(1.4826 * np.median(np.abs(e["err_um"] -
-                                                                          np.median(e["err_um"]))))
+    return 1000 * e["rmse_um"], 1000 * robust_sd(e["err_um"])
 
 
 def run_cell(regime, noise, tilts, seed):
@@ -68,10 +71,9 @@ def run_cell(regime, noise, tilts, seed):
     exp = am.make_cell(tempfile.mkdtemp(), regime, noise, tilts, seed)
     views = exp.views()[:len(tilts)]
     outer = [views[0], views[-1]]
-    runs = {"three views": lambda **kw: _accepted(views, **kw),
-            "three views, agreement": lambda **kw: _accepted(views, agreement=True, **kw),
-            "outer pair": lambda **kw: _accepted(outer, **kw)}
-    res = {name: f() for name, f in runs.items()}
+    res = {"three views": _accepted(views),
+           "three views, agreement": _accepted(views, agreement=True),
+           "outer pair": _accepted(outer)}
     subsets = {"three views": _accepted(views, variational_fusion=False),
                "outer pair": _accepted(outer, variational_fusion=False)}
     keys = sorted(set.intersection(*[set(r) for r in list(res.values())
@@ -80,17 +82,12 @@ def run_cell(regime, noise, tilts, seed):
     flows = {j: am.dense_flows(views[0], views[j])[0] for j in range(1, len(views))}
     df = am.multiview_reference_matches(views, p0, 0, flows)["DeepFlow"]
     df_rmse, df_rsig = _errors_nm(exp, df, tilts)
+    at_keys = lambda r: np.array([r[k] for k in keys])  # noqa: E731
     cols = []
-    for name, r in res.items():
-        p = np.array([r[k] for k in keys])
-        rmse, rsig = _errors_nm(exp, p, tilts if p.shape[1] == len(tilts) else
-                                (tilts[0], tilts[-1]))
+    for r in res.values():
+        rmse, rsig = _errors_nm(exp, at_keys(r), tilts)
         cols.append(f"{rmse:.1f} / {rsig:.1f} nm, {rmse / df_rmse:.2f}×")
-    sub = []
-    for name, r in subsets.items():
-        p = np.array([r[k] for k in keys])
-        outer_tilts = tilts if p.shape[1] == len(tilts) else (tilts[0], tilts[-1])
-        sub.append(f"{_errors_nm(exp, p, outer_tilts)[0]:.1f}")
+    sub = [f"{_errors_nm(exp, at_keys(r), tilts)[0]:.1f}" for r in subsets.values()]
     n_all = ", ".join(str(len(r)) for r in res.values())
     return (f"| {regime} {noise} {am.tilts_label(tilts)} | {seed} | {len(keys)} ({n_all}) | "
             + " | ".join(cols) + f" | {df_rmse:.1f} / {df_rsig:.1f} nm | " + " / ".join(sub)
