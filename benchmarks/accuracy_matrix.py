@@ -89,6 +89,7 @@ import numpy as np
 from scipy import ndimage
 
 from semlab import experiment, pipeline, realtex, reconstruct, synth, validation
+from semlab.stats import robust_sd
 
 from bench_args import variational_params
 
@@ -341,8 +342,7 @@ def score(exp, pts, tilts, z_err_um=None):
     for sfx, plane in GAUGES.items():
         e = validation.height_errors(z, zt, p[:, 0], plane=plane)
         err = e["err_um"]
-        rsig = 1.4826 * np.median(np.abs(err - np.median(err)))
-        row.update({f"rmse{sfx}": 1000 * e["rmse_um"], f"rsig{sfx}": 1000 * rsig})
+        row.update({f"rmse{sfx}": 1000 * e["rmse_um"], f"rsig{sfx}": 1000 * robust_sd(err)})
         if zs is not None:
             row.update({f"in1{sfx}": float(np.mean(np.abs(err) < zs)),
                         f"in2{sfx}": float(np.mean(np.abs(err) < 2 * zs))})

@@ -60,6 +60,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from semlab.io import read_image  # noqa: E402
 from semlab.matching import auto_match  # noqa: E402
 from semlab.plane import fit_reference_plane, heights_above_plane  # noqa: E402
+from semlab.stats import robust_sd  # noqa: E402
 from semlab.reconstruct import estimate_tilts, heights_from_tilts  # noqa: E402
 from semlab.surface import height_sigma, reference_surface  # noqa: E402
 from semlab.tiltcheck import check_tilts, level_tilts  # noqa: E402
@@ -139,10 +140,6 @@ def _pair_heights(P, tilt, pairs, sig_px, ref_view):
         zs.append(np.sqrt(sa ** 2 * cb ** 2 + sb ** 2 * ca ** 2)
                   / abs(np.sin(np.deg2rad(th[1] - th[0]))))
     return np.column_stack(z), np.column_stack(zs)
-
-
-def _robust_sd(u):
-    return float(1.4826 * np.median(np.abs(u - np.median(u))))
 
 
 def _neighbour_check(xy, z, zs, nv, radius=24.0, min_nb=8):
@@ -237,7 +234,7 @@ def _fewer_views(m, tilt, ref, ref_view, ref_index):
             u = _triple_check(P, vv, reg & (nv == k_views), s.sigma_px, tilt, ref_view)
             if u is None:
                 continue
-            print(f"| (r, a) − (r, b), {label} | {name} | {len(u)} | {_robust_sd(u):.2f} | "
+            print(f"| (r, a) − (r, b), {label} | {name} | {len(u)} | {robust_sd(u):.2f} | "
                   f"{np.mean(np.abs(u) <= 1):.0%} | {np.mean(np.abs(u) <= 2):.0%} |")
     for k_views in (2, 3, 4):
         sel = (rr > SUBSTRATE_R) & (nv == k_views)
@@ -245,7 +242,7 @@ def _fewer_views(m, tilt, ref, ref_view, ref_index):
             continue
         u = (z[sel] - np.median(z[sel])) / zs[sel]
         print(f"| substrate height above the reference / σ, valid in {k_views} views | "
-              f"substrate | {sel.sum()} | {_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
+              f"substrate | {sel.sum()} | {robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
               f"{np.mean(np.abs(u) <= 2):.0%} |")
     un = _neighbour_check(P[:, ref_view], z, zs, nv)
     print("\n| neighbour check: height − local quadric of the 3/4-view neighbours (24 px), / σ "
@@ -257,7 +254,7 @@ def _fewer_views(m, tilt, ref, ref_view, ref_index):
             if sel.sum() < 10:
                 continue
             a = un[sel]
-            print(f"| valid in {k_views} views | {name} | {sel.sum()} | {_robust_sd(a):.2f} | "
+            print(f"| valid in {k_views} views | {name} | {sel.sum()} | {robust_sd(a):.2f} | "
                   f"{np.mean(np.abs(a) <= 1):.0%} | {np.mean(np.abs(a) <= 2):.0%} | "
                   f"{np.mean(np.abs(a) > 4):.1%} |")
     return P[:, ref_view], z, np.isin(s.source_index, np.asarray(ref_index)[ref.inliers])
@@ -368,7 +365,7 @@ def pollen():
             dd = dd - np.column_stack([P[sel, ref_view], np.ones(sel.sum())]) @ np.linalg.lstsq(
                 np.column_stack([P[sel, ref_view], np.ones(sel.sum())]), dd, rcond=None)[0]
             u = dd / sd[sel]
-            rsd = 1.4826 * np.median(np.abs(u - np.median(u)))
+            rsd = robust_sd(u)
             print(f"| {pairs[i]} − {pairs[k]}, {name} | {sel.sum()} | {rsd:.2f} | "
                   f"{np.mean(np.abs(u) <= 1):.0%} | {np.mean(np.abs(u) <= 2):.0%} | "
                   f"{np.median(sd[sel]):.2f} |")
@@ -460,8 +457,8 @@ def brassica(stage9_off=False):
         dd = dd - np.median(dd)
         dd = dd - xy1 @ np.linalg.lstsq(xy1, dd, rcond=None)[0]
         u = dd / sd
-        print(f"| {pairs[i]} − {pairs[k]}, all-view points | {len(u)} | {_robust_sd(dd):.2f} | "
-              f"{_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
+        print(f"| {pairs[i]} − {pairs[k]}, all-view points | {len(u)} | {robust_sd(dd):.2f} | "
+              f"{robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
               f"{np.mean(np.abs(u) <= 2):.0%} | {np.median(sd):.2f} |")
     s = m.seen_in(2)
     s = s.select(np.isfinite(s.sigma_px) & (s.sigma_px > 0))
@@ -471,7 +468,7 @@ def brassica(stage9_off=False):
         u = _triple_check(s.pts, vv, nv == k_views, s.sigma_px, tilt, ref_view)
         if u is not None:
             print(f"| (r, a) − (r, b), valid in {k_views} views | {len(u)} | – | "
-                  f"{_robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
+                  f"{robust_sd(u):.2f} | {np.mean(np.abs(u) <= 1):.0%} | "
                   f"{np.mean(np.abs(u) <= 2):.0%} | – |")
     sig = np.where(vv, np.clip(s.sigma_px, 1e-3, None)[:, None], np.inf)
     z = heights_from_tilts(s.pts, tilt, 1.0, view_valid=vv).xyz_um[:, 2]
@@ -481,7 +478,7 @@ def brassica(stage9_off=False):
         if sel.sum() >= 10:
             a = un[sel]
             print(f"| neighbour check (24 px quadric), valid in {k_views} views | {sel.sum()} | "
-                  f"– | {_robust_sd(a):.2f} | {np.mean(np.abs(a) <= 1):.0%} | "
+                  f"– | {robust_sd(a):.2f} | {np.mean(np.abs(a) <= 1):.0%} | "
                   f"{np.mean(np.abs(a) <= 2):.0%} | – |")
 
 

@@ -47,6 +47,7 @@ import accuracy_matrix as am  # noqa: E402
 import stage9_bar as s9  # noqa: E402
 
 from semlab import fusion, matching, noise, subset  # noqa: E402
+from semlab.stats import robust_sd  # noqa: E402
 from semlab.variational import _fill  # noqa: E402
 
 PILOTS = ("map", "average", "sharpened", "subsets")
@@ -105,7 +106,7 @@ def noise_sd(img, poisson):
     for lo, hi in zip(edges[:-1], edges[1:]):
         m = (inner >= lo) & (inner <= hi)
         xs.append(np.median(inner[m]))
-        vs.append((1.4826 * np.median(np.abs(r[m])) / 6.0) ** 2)
+        vs.append((robust_sd(r[m], about=0.0) / 6.0) ** 2)
     c1, c0 = np.polyfit(xs, vs, 1)
     return np.sqrt(np.clip(c0 + c1 * smooth, 0.05 * np.median(vs), None))
 

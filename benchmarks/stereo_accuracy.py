@@ -22,6 +22,7 @@ import numpy as np
 
 from semlab import epipolar, experiment, pipeline, reconstruct, synth, validation, vanishing
 from semlab.errors import SemlabError
+from semlab.stats import robust_sd
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -184,16 +185,13 @@ def _pair_error_bars(dz, sd, xy, smooth_px=60.0, apart_px=24.0):
     apart (independent subsets) against the σ."""
     from scipy.spatial import cKDTree
 
-    def rsd(v):
-        return float(1.4826 * np.median(np.abs(v - np.median(v))))
-
     tree = cKDTree(xy)
     smooth = np.array([np.median(dz[i]) for i in tree.query_ball_point(xy, smooth_px)])
     pr = tree.query_pairs(apart_px, output_type="ndarray")
     far = np.hypot(*(xy[pr[:, 1]] - xy[pr[:, 0]]).T) > apart_px / 2
-    return {"rsd_px": rsd(dz), "sigma_px": float(np.median(sd)), "u": dz / sd,
-            "smooth_rsd_px": rsd(smooth), "local_u": (dz - smooth) / sd,
-            "apart_rsd_px": rsd(dz[pr[far, 1]] - dz[pr[far, 0]]) / np.sqrt(2)}
+    return {"rsd_px": robust_sd(dz), "sigma_px": float(np.median(sd)), "u": dz / sd,
+            "smooth_rsd_px": robust_sd(smooth), "local_u": (dz - smooth) / sd,
+            "apart_rsd_px": robust_sd(dz[pr[far, 1]] - dz[pr[far, 0]]) / np.sqrt(2)}
 
 
 def main():
