@@ -126,9 +126,11 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None):
     sigma : (N,) array
         ``sqrt(w² σ_a² + (1 − w)² σ_b²)``: the 1σ of the average when the two errors are
         uncorrelated, which the two estimates from the same pixels are not in general. At the
-        points of :func:`semlab.matching.auto_match` this σ about holds (66–81 % of the
-        errors within 1σ, 91–97 % within 2σ on sixteen cells of the accuracy matrix), because
-        the subset and variational σ it combines are each conservative there.
+        points of :func:`semlab.matching.auto_match` (stage 9: ``weight_sigma_b`` the map's
+        noise-plus-bias σ, ``sigma_b`` its posterior σ) it is conservative: 77–96 % of the
+        errors within 1σ, 95–100 % within 2σ on 19 two-view cells of the accuracy matrix
+        (``benchmarks/results/stage9_bar_family.md``), because the posterior σ holds the
+        prior's roughness, about twice the map's error on flat parts.
     weight_b : (N,) array
         ``1 − w`` (0 where ``b`` was not used, 1 where only ``b`` was).
     """
