@@ -479,6 +479,27 @@ def test_identical_views_refused_flat_sample_reported_flat():
         np.deg2rad(10.0)), rel=0.05)
 
 
+def test_a_band_on_a_flat_surface_is_relief():
+    """A narrow band on an otherwise flat surface (the demo's kind: a few per cent of the
+    points, their parallax 6σ) leaves the parallax RMS within 1.5× the noise, but 20 points
+    beyond 3σ where noise gives ~1: relief, not "flat within"; noise alone is still flat."""
+    xyz = make_scene(n=1000, seed=11)
+    xyz[:, 2] = 0.2 + 0.01 * xyz[:, 1]
+    band = np.random.default_rng(1).random(len(xyz)) < 0.02
+    # parallax of a height z at ±5°: z · 2 sin 5° / S; here 6 × its noise sqrt(2) · 0.03 px
+    xyz[band, 2] += 6 * np.sqrt(2) * 0.03 * S / (2 * np.sin(np.deg2rad(5.0)))
+    for sigma in (0.03, np.full(len(xyz), 0.03), None):
+        chk = check_tilts(noisy(project(xyz, (-5.0, 5.0)), 0.03), (-5.0, 5.0), sigma_px=sigma,
+                          pixel_size_um=S)
+        assert chk.parallax_rms_px[1] < 1.5 * chk.noise_px[1]    # the RMS alone: flat
+        assert chk.consistent and chk.relief_detected and "flat within" not in chk.message
+    xyz[band, 2] = 0.2 + 0.01 * xyz[band, 1]
+    for seed in range(5):
+        chk = check_tilts(noisy(project(xyz, (-5.0, 5.0)), 0.03, seed=seed), (-5.0, 5.0),
+                          sigma_px=0.03, pixel_size_um=S)
+        assert not chk.relief_detected and "flat within" in chk.message
+
+
 def test_tilt_axis_rotated_only_when_significant():
     xyz = make_scene(n=300, seed=7)
     pts = noisy(project(xyz, (-5.0, 5.0)), 0.05)
