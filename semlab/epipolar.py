@@ -218,8 +218,10 @@ def fundamental_affine(x0, x1):
     if _null_space_is_large(sv):
         raise GeometryError(
             "the affine epipolar geometry is undetermined: view 1 is an affine map of view 0 "
-            "(a flat scene with no height relief, or no tilt between the views). Click points "
-            "at different heights (ridges, pits, particles) or use views with a larger tilt")
+            "within the points' own scatter (their height relief is not above their position "
+            "error, or there is no tilt between the views). Click points at clearly different "
+            "heights (ridges, pits, particles), refine the clicks, or use views with a larger "
+            "tilt")
     a, b, c, d = Vt[-1]
     e = -Vt[-1] @ mean
     return _unit(np.array([[0.0, 0.0, a], [0.0, 0.0, b], [c, d, e]]))

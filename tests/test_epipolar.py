@@ -126,7 +126,7 @@ def test_affine_planar_is_degenerate_for_8point_and_says_so():
 
 def test_affine_planar_is_degenerate_for_affine_too():
     x0, x1 = affine_pair(planar=True)
-    with pytest.raises(GeometryError, match="no height relief"):
+    with pytest.raises(GeometryError, match="height relief is not above their position"):
         ep.fundamental_affine(x0, x1)
 
 
