@@ -29,6 +29,7 @@ __all__ = [
     "mean_gradient_cov",
     "triangle_gradient_cov",
     "gradient_from_field",
+    "dense_field_strain",
     "small_strain",
     "green_lagrange",
     "surface_green_lagrange",
@@ -639,12 +640,55 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
 
 #: Dense strain grid (:func:`strain_from_tracks`): Gaussian pre-smoothing of its IC-GN (removes most of the interpolation
 #: bias that varies with the sub-pixel phase of the displacement and shows in its gradient),
-#: the lowest ZNCC a grid subset needs to enter the strain (subsets in textureless grain
-#: interiors scatter by 0.1-0.2 px), and the strain window in grid points (see
-#: semlab.strain.gradient_from_field).
+#: the lowest ZNCC a grid subset needs to enter the strain (None: every converged subset
+#: does), and the strain window in grid points (see semlab.strain.gradient_from_field).
+#: The ZNCC floor was 0.95 until 2026-12-07: it left out the subsets on the slip bands,
+#: whose appearance changes as they deform (ZNCC 0.4-0.95) but whose displacements are
+#: measured, so the plane fits missed the bands' steps and the dense strain lost the band
+#: strain (the demo's mean E_yy 0.013 against 0.026 of its truth over the same gauge; RMS
+#: error against that truth lower without the floor on 11 of 12 components of four series,
+#: ``benchmarks/dense_strain_bands.py``); the noise of textureless subsets, which it was for,
+#: is averaged by the strain window.
 DENSE_SMOOTH_SIGMA_PX = 0.8
-DENSE_MIN_ZNCC = 0.95
+DENSE_MIN_ZNCC = None
 DENSE_WINDOW = 7
+
+
+def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_zncc=None):
+    """Deformation gradient and Green–Lagrange strain of a dense grid's displacements.
+
+    Parameters
+    ----------
+    ux, uy : (H, W) arrays
+        Displacement ``U(x) = x_end − X_ref`` on the end-state grid (rows = y), µm; NaN where
+        the subset did not converge.
+    spacing_um : float
+        Grid spacing, µm.
+    window : int
+        Strain window in grid points (:func:`gradient_from_field`).
+    zncc : (H, W) array, optional
+        The subsets' ZNCC, for ``min_zncc``.
+    min_zncc : float, optional
+        Leave out subsets below this ZNCC (None: every converged subset enters; see
+        :data:`DENSE_MIN_ZNCC`).
+
+    Returns
+    -------
+    F : (H, W, 2, 2) array
+        ``(I − ∂U/∂x)⁻¹`` (NaN where the window has too few points).
+    E : (H, W, 2, 2) array
+        Green–Lagrange strain ``½(FᵀF − I)``.
+    """
+    good = np.ones(np.shape(ux), bool)
+    if min_zncc is not None:
+        good = np.asarray(zncc, float) >= min_zncc
+    G = gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan), spacing_um,
+                            window=window)
+    eye = np.eye(2)
+    finite = np.all(np.isfinite(G), axis=(-2, -1))
+    F = np.full(G.shape, np.nan)
+    F[finite] = np.linalg.inv(eye - G[finite])
+    return F, green_lagrange(F - eye)
 
 
 def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
@@ -657,8 +701,9 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
     disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
     the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
-    tracks; subsets with ZNCC below ``dense_min_zncc`` are left out, and the gradient is the
-    plane fit over ``dense_window`` × ``dense_window`` grid points, a gauge of
+    tracks; every converged subset enters, or with ``dense_min_zncc`` only those with at least
+    that ZNCC, and the gradient is the plane fit over ``dense_window`` × ``dense_window`` grid
+    points, a gauge of
     ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
     ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
     (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
@@ -784,19 +829,13 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     u[~r.converged] = np.nan
     ux = u[:, 0].reshape(GX.shape)
     uy = u[:, 1].reshape(GX.shape)
-    good = (r.zncc >= dense_min_zncc).reshape(GX.shape)
-    # ∂U/∂x (end-state coordinates) over the strain window, good subsets only
-    G = gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan),
-                               grid_step_px * s, window=dense_window)
+    zncc = r.zncc.reshape(GX.shape)
+    Fd, E = dense_field_strain(ux, uy, grid_step_px * s, dense_window, zncc, dense_min_zncc)
     out["dense_gauge_um"] = dense_window * grid_step_px * s
     eye = np.eye(2)
-    finite = np.all(np.isfinite(G), axis=(-2, -1))
-    Fd = np.full(G.shape, np.nan)
-    Fd[finite] = np.linalg.inv(eye - G[finite])
-    E = green_lagrange(Fd - eye)
     e1, e2, ang = principal_strains(E)
     out.update(grid_x_px=gx, grid_y_px=gy, ux_um=ux, uy_um=uy, E=E, e1=e1, e2=e2, angle_deg=ang,
-               max_shear=max_shear(E), zncc=r.zncc.reshape(GX.shape))
+               max_shear=max_shear(E), zncc=zncc)
     if heights is not None:
         z = heights(GX, GY)
         dzdy, dzdx = np.gradient(z, grid_step_px * s)
