@@ -7,8 +7,8 @@ uniform small strain (no slip bands); semlab.series.run_tracking tracks it backw
 derives the strain (dense IC-GN grid, Delaunay triangles, local least squares). The table
 compares the median Green–Lagrange strain with the truth (truth/fields.npz), for several
 seeds (scenes). The sparse methods use the Shi–Tomasi-seeded tracks valid from the reference
-frame (the earliest frame with enough valid tracks) to the last; the dense grid uses subsets
-with ZNCC >= 0.95 and a 7×7-point strain window.
+frame (the earliest frame with enough valid tracks) to the last; the dense grid uses every
+converged subset (subsets with ZNCC >= 0.95 until 2026-12-07) and a 7×7-point strain window.
 
 The last table checks the local least-squares strain's 1σ (``E_lsq_sigma``, propagated from
 the tracks' ``sigma_px``): per component the median predicted σ, the RMS of the error

@@ -648,7 +648,8 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
 #: strain (the demo's mean E_yy 0.013 against 0.026 of its truth over the same gauge; RMS
 #: error against that truth lower without the floor on 11 of 12 components of four series,
 #: ``benchmarks/dense_strain_bands.py``); the noise of textureless subsets, which it was for,
-#: is averaged by the strain window.
+#: is averaged by the strain window (on a uniform strain without bands the dense median is
+#: within 3.0 % of the truth instead of 1.9 %, at most 3e-4 in strain).
 DENSE_SMOOTH_SIGMA_PX = 0.8
 DENSE_MIN_ZNCC = None
 DENSE_WINDOW = 7
