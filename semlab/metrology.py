@@ -262,6 +262,32 @@ class Band:
         return float(np.degrees(np.arctan2(d[1], d[0])) % 180.0)
 
 
+def line_through(points):
+    """The total least-squares line through points, between their extreme projections.
+
+    Parameters
+    ----------
+    points : (N, 2) array
+        ``(x, y)`` in any one unit; rows with NaN are ignored.
+
+    Returns
+    -------
+    (p0, p1) of (2,) arrays, or None
+        The segment's end points (same unit); None with fewer than 2 finite points or when
+        they all coincide (no direction).
+    """
+    q = np.asarray(points, float).reshape(-1, 2)
+    q = q[np.all(np.isfinite(q), axis=1)]
+    if len(q) < 2:
+        return None
+    mu = q.mean(0)
+    _, _, vt = np.linalg.svd(q - mu)
+    t = (q - mu) @ vt[0]
+    if t.max() - t.min() <= 0:
+        return None
+    return mu + t.min() * vt[0], mu + t.max() * vt[0]
+
+
 def bands_from_clicks(pts_px, crack_id, half_width_px=25.0):
     """One :class:`Band` per ``crack_id`` (>= 0) with at least 2 points: the total
     least-squares line through its points, between the extreme projections.
@@ -277,15 +303,10 @@ def bands_from_clicks(pts_px, crack_id, half_width_px=25.0):
         raise GeometryError(f"pts_px must be (N, 2) and crack_id (N,), got {p.shape}, {c.shape}")
     out = []
     for cid in sorted(set(c[c >= 0].tolist())):
-        q = p[(c == cid) & np.all(np.isfinite(p), 1)]
-        if len(q) < 2:
-            continue
-        mu = q.mean(0)
-        _, _, vt = np.linalg.svd(q - mu)
-        d = vt[0]
-        t = (q - mu) @ d
-        out.append(Band(int(cid), tuple(mu + t.min() * d), tuple(mu + t.max() * d),
-                        "crack_id", float(half_width_px)))
+        seg = line_through(p[c == cid])
+        if seg is not None:
+            out.append(Band(int(cid), tuple(seg[0]), tuple(seg[1]), "crack_id",
+                            float(half_width_px)))
     return out
 
 

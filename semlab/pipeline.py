@@ -133,6 +133,34 @@ def _jsonable(obj):
 
 
 # ------------------------------------------------------------------------------ stereo steps
+def summarise_reasons(reasons):
+    """Why points failed, each distinct reason once: ``"k× reason"``, a number that differs
+    between the points shown as its range (``"centred 0.68–0.81 of the half size"``), the
+    reasons of a point's views (``"view 1: …; view 2: …"``) counted separately.
+
+    >>> summarise_reasons(["view 1: off by 0.5 px; view 2: off by 0.7 px",
+    ...                    "view 1: off by 0.6 px"])
+    '3× view 1–2: off by 0.5–0.7 px'
+    """
+    import re
+
+    number = re.compile(r"-?\d+(?:\.\d+)?")
+    groups = {}
+    for reason in reasons:
+        for part in re.split(r"; (?=view \d+: )", str(reason)):
+            groups.setdefault(number.sub("#", part), []).append(number.findall(part))
+    out = []
+    for template, values in groups.items():
+        text = template.split("#")
+        s = text[0]
+        for k, rest in enumerate(text[1:]):
+            slot = sorted({v[k] for v in values}, key=float)
+            s += slot[0] if len(slot) == 1 else f"{slot[0]}–{slot[-1]}"
+            s += rest
+        out.append(f"{len(values)}× {s}")
+    return "; ".join(out)
+
+
 @strict_keywords
 def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None, auto_kw=None,
                 with_partial=False):
@@ -194,7 +222,7 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
         parts.append((r.pts[ok], np.array(["click"] * ok.sum()), r.sigma_px[ok], np.flatnonzero(ok)))
         if (~ok).any():
             warnings.warn(f"{(~ok).sum()} clicked points could not be refined and were left out "
-                          f"({', '.join(sorted(set(map(str, np.asarray(r.reason)[~ok]))))})",
+                          f"({summarise_reasons(np.asarray(r.reason)[~ok])})",
                           SemlabWarning, stacklevel=2)
     if method in ("auto", "merged"):
         # views larger than DEFAULT_TILING.min_pixels are matched in tiles

@@ -18,7 +18,7 @@ from scipy import stats
 from tqdm.auto import tqdm
 
 from .errors import GeometryError, SemlabError
-from .metrology import _segment
+from .metrology import _segment, line_through
 from .plane import (_as_xyz, fit_reference_plane, heights_above_plane, plane_through_points,
                     ransac_plane)
 from .reconstruct import heights_from_tilts
@@ -35,6 +35,7 @@ __all__ = [
     "height_sigma",
     "bootstrap_heights",
     "profile_along_line",
+    "crack_profiles",
     "height_trend",
     "write_points3d_csv",
     "read_points3d_csv",
@@ -473,6 +474,40 @@ def profile_along_line(xy_um, z_um, p0_um, p1_um, width_um, n_bins=None):
             std = np.sqrt(np.maximum(s2 / cnt - mean ** 2, 0.0))
         out.update(bin_center_um=(edges[:-1] + edges[1:]) / 2, bin_mean_um=mean,
                    bin_std_um=std, bin_count=cnt)
+    return out
+
+
+def crack_profiles(xyz_um, z_um, crack_id, width_um=1.0):
+    """Height profiles along each clicked crack.
+
+    Parameters
+    ----------
+    xyz_um : (N, 3) array
+        Points' material ``(x, y, z)``, µm (``StereoResult.xyz_um``).
+    z_um : (N,) array
+        Their heights above the reference surface, µm.
+    crack_id : (N,) int array or None
+        The crack each point lies on, ``-1`` for none (``StereoResult.crack_id``).
+    width_um : float
+        Full width of the strip around each crack's line whose points are profiled.
+
+    Returns
+    -------
+    list of (int, dict)
+        ``(crack_id, profile)`` for every crack with two or more distinct points: the
+        :func:`profile_along_line` along the total least-squares line through its points
+        (:func:`semlab.metrology.line_through`), between their extreme projections. Empty
+        without such a crack.
+    """
+    if crack_id is None:
+        return []
+    xy = np.asarray(xyz_um, float)[:, :2]
+    c = np.asarray(crack_id).astype(int).ravel()
+    out = []
+    for cid in sorted(set(c[c >= 0].tolist())):
+        seg = line_through(xy[c == cid])
+        if seg is not None:
+            out.append((cid, profile_along_line(xy, z_um, seg[0], seg[1], width_um=width_um)))
     return out
 
 

@@ -277,3 +277,14 @@ def test_points_seen_in_fewer_views_get_heights_in_the_same_frame(tmp_path, monk
     assert np.array_equal(back["point_id"], res.point_id)
     assert np.array_equal(back["n_views"], res.n_views) and (back["n_views"] == 2).sum() > 100
     assert np.array_equal(back["n_views"] < 3, back["point_id"] >= fv["first_point_id"])
+
+
+def test_refinement_failures_are_summarised_once_per_reason():
+    """The warning of clicks left out names each reason once, with the range of its numbers,
+    not once per point and view (a three-view run printed the same sentence 18 times)."""
+    why = ("its subset's parallax information is centred {} of the half size from the click: "
+           "texture-free around the click; click on texture")
+    reasons = [f"view 1: {why.format(0.68)}; view 2: {why.format(0.68)}",
+               f"view 1: {why.format(0.81)}", "view 2: ZNCC 0.50 below 0.90"]
+    s = pipeline.summarise_reasons(reasons)
+    assert s == (f"3× view 1–2: {why.format('0.68–0.81')}; 1× view 2: ZNCC 0.50 below 0.90")

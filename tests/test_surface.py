@@ -460,3 +460,27 @@ def test_show_reference_surface_draws_points_and_reference():
     lo, hi = points.get_clim()
     assert lo == -hi and 0 < hi < 20 * z_sig  # the reference's scatter sets the scale
     plt.close(ax.figure)
+
+
+def test_crack_profiles_follow_each_crack_and_skip_those_without_a_direction():
+    """One profile per crack with two or more distinct points, along its own line; a crack
+    left with one point (its other clicks not refined) or with coincident points gives none
+    instead of an error (notebook 04 on a three-view synthetic run stopped there)."""
+    from semlab.surface import crack_profiles
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 10, (300, 2))
+    z = np.where(np.abs(xy[:, 1] - xy[:, 0]) < 0.3, 0.1, 0.0)      # a ridge along y = x
+    xyz = np.column_stack([xy, z])
+    cid = np.full(len(xy), -1)
+    on = np.flatnonzero(np.abs(xy[:, 1] - xy[:, 0]) < 0.05)[:6]
+    cid[on] = 0                                                      # crack 0 along y = x
+    cid[np.flatnonzero(cid < 0)[0]] = 1                              # crack 1: a single point
+    two = np.flatnonzero(cid < 0)[:2]
+    xyz[two[1], :2] = xyz[two[0], :2]
+    cid[two] = 2                                                     # crack 2: coincident
+    out = crack_profiles(xyz, z, cid, width_um=0.3)
+    assert [c for c, _ in out] == [0]
+    prof = out[0][1]
+    assert np.all(np.abs(prof["offset_um"]) <= 0.15) and np.all(z[prof["index"]] > 0)
+    assert crack_profiles(xyz, z, None) == [] and crack_profiles(xyz, z, np.full(len(z), -1)) == []
