@@ -288,6 +288,27 @@ def line_through(points):
     return mu + t.min() * vt[0], mu + t.max() * vt[0]
 
 
+def crack_lines(points, crack_id):
+    """The line of each crack: ``(crack_id, p0, p1)`` of :func:`line_through` the points of
+    every ``crack_id`` (>= 0) that has a direction, in the points' unit.
+
+    Parameters
+    ----------
+    points : (N, 2) array of (x, y)
+    crack_id : (N,) int array (-1 = on no crack).
+    """
+    p = np.asarray(points, float)
+    c = np.asarray(crack_id).astype(int).ravel()
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) != len(c):
+        raise GeometryError(f"points must be (N, 2) and crack_id (N,), got {p.shape}, {c.shape}")
+    out = []
+    for cid in sorted(set(c[c >= 0].tolist())):
+        seg = line_through(p[c == cid])
+        if seg is not None:
+            out.append((int(cid), seg[0], seg[1]))
+    return out
+
+
 def bands_from_clicks(pts_px, crack_id, half_width_px=25.0):
     """One :class:`Band` per ``crack_id`` (>= 0) with at least 2 points: the total
     least-squares line through its points, between the extreme projections.
@@ -297,17 +318,8 @@ def bands_from_clicks(pts_px, crack_id, half_width_px=25.0):
     pts_px : (N, 2) array of (x, y) in view 0.
     crack_id : (N,) int array (-1 = on no crack).
     """
-    p = np.asarray(pts_px, float)
-    c = np.asarray(crack_id).astype(int).ravel()
-    if p.ndim != 2 or p.shape[1] != 2 or len(p) != len(c):
-        raise GeometryError(f"pts_px must be (N, 2) and crack_id (N,), got {p.shape}, {c.shape}")
-    out = []
-    for cid in sorted(set(c[c >= 0].tolist())):
-        seg = line_through(p[c == cid])
-        if seg is not None:
-            out.append(Band(int(cid), tuple(seg[0]), tuple(seg[1]), "crack_id",
-                            float(half_width_px)))
-    return out
+    return [Band(cid, tuple(p0), tuple(p1), "crack_id", float(half_width_px))
+            for cid, p0, p1 in crack_lines(pts_px, crack_id)]
 
 
 def map_bands(z_um, pixel_size_um, sigma_um=None, pts_px=None, crack_id=None, detect=True,

@@ -15,6 +15,7 @@ Each step is a function of semlab's modules; this file only chains them and writ
 from __future__ import annotations
 
 import json
+import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -142,8 +143,6 @@ def summarise_reasons(reasons):
     ...                    "view 1: off by 0.6 px"])
     '3× view 1–2: off by 0.5–0.7 px'
     """
-    import re
-
     number = re.compile(r"-?\d+(?:\.\d+)?")
     groups = {}
     for reason in reasons:

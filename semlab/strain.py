@@ -682,6 +682,8 @@ def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_z
     """
     good = np.ones(np.shape(ux), bool)
     if min_zncc is not None:
+        if zncc is None:
+            raise SemlabError("dense_field_strain: min_zncc needs the subsets' zncc")
         good = np.asarray(zncc, float) >= min_zncc
     G = gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan), spacing_um,
                             window=window)

@@ -18,7 +18,7 @@ from scipy import stats
 from tqdm.auto import tqdm
 
 from .errors import GeometryError, SemlabError
-from .metrology import _segment, line_through
+from .metrology import _segment, crack_lines
 from .plane import (_as_xyz, fit_reference_plane, heights_above_plane, plane_through_points,
                     ransac_plane)
 from .reconstruct import heights_from_tilts
@@ -496,19 +496,14 @@ def crack_profiles(xyz_um, z_um, crack_id, width_um=1.0):
     list of (int, dict)
         ``(crack_id, profile)`` for every crack with two or more distinct points: the
         :func:`profile_along_line` along the total least-squares line through its points
-        (:func:`semlab.metrology.line_through`), between their extreme projections. Empty
+        (:func:`semlab.metrology.crack_lines`), between their extreme projections. Empty
         without such a crack.
     """
     if crack_id is None:
         return []
     xy = np.asarray(xyz_um, float)[:, :2]
-    c = np.asarray(crack_id).astype(int).ravel()
-    out = []
-    for cid in sorted(set(c[c >= 0].tolist())):
-        seg = line_through(xy[c == cid])
-        if seg is not None:
-            out.append((cid, profile_along_line(xy, z_um, seg[0], seg[1], width_um=width_um)))
-    return out
+    return [(cid, profile_along_line(xy, z_um, p0, p1, width_um=width_um))
+            for cid, p0, p1 in crack_lines(xy, crack_id)]
 
 
 def height_trend(xyz_um):
