@@ -173,7 +173,7 @@ def lateral_vs_depth(d_um, z_um, dx_um, dy_um, n_boot=500, seed=0):
     return fig
 
 
-def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
+def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=None):
     """Strain component maps side by side, each with a symmetric colour scale (98th
     percentile of ``|value|``) and its colour bar.
 
@@ -183,6 +183,9 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
     maps : dict ``{name: (ny, nx) array}`` of dimensionless strains
     pixel_size_um : float, optional
         Axes in µm when given.
+    interpolated : (ny, nx) bool array, optional
+        Grid points whose displacement was interpolated, not measured (``strain.npz``
+        ``dense_filled``): marked with a grey dot on every map and named in the legend.
     """
     plt = _plt()
     s = pixel_size_um or 1.0
@@ -204,6 +207,12 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None):
         ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
         ax.tick_params(labelsize=REPORT_FONTSIZE)
         fig.colorbar(im, ax=ax, label="strain (–)")
+        if interpolated is not None and np.any(interpolated):
+            mx, my = np.meshgrid(gx * s, gy * s)
+            m = np.asarray(interpolated, bool)
+            ax.plot(mx[m], my[m], ".", color="0.4", ms=3,
+                    label="displacement interpolated (no subset matched)")
+            ax.legend(fontsize=REPORT_FONTSIZE - 1, loc="lower right")
     fig.tight_layout()
     return fig
 

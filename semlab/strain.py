@@ -30,6 +30,7 @@ __all__ = [
     "triangle_gradient_cov",
     "gradient_from_field",
     "dense_field_strain",
+    "fill_dense_holes",
     "small_strain",
     "green_lagrange",
     "surface_green_lagrange",
@@ -644,18 +645,72 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
 #: does), and the strain window in grid points (see semlab.strain.gradient_from_field).
 #: The ZNCC floor was 0.95 until 2026-12-07: it left out the subsets on the slip bands,
 #: whose appearance changes as they deform (ZNCC 0.4-0.95) but whose displacements are
-#: measured, so the plane fits missed the bands' steps and the dense strain lost the band
-#: strain (the demo's mean E_yy 0.013 against 0.026 of its truth over the same gauge; RMS
-#: error against that truth lower without the floor on 11 of 12 components of four series,
-#: ``benchmarks/dense_strain_bands.py``); the noise of textureless subsets, which it was for,
-#: is averaged by the strain window (on a uniform strain without bands the dense median is
-#: within 3.0 % of the truth instead of 1.9 %, at most 3e-4 in strain).
+#: measured, so the plane fits missed the bands' steps (``benchmarks/dense_strain_bands.py``);
+#: the noise of textureless subsets, which it was for, is averaged by the strain window (on a
+#: uniform strain without bands the dense median is within 3.0 % of the truth instead of
+#: 1.9 %, at most 3e-4 in strain).
 DENSE_SMOOTH_SIGMA_PX = 0.8
 DENSE_MIN_ZNCC = None
 DENSE_WINDOW = 7
+#: Half sizes of the dense grid's subsets, tried in turn where the larger did not converge:
+#: a subset across a slip band's step does not fit any shape function, a smaller one beside
+#: the step does (the points left unmatched at a band took part of its step out of the plane
+#: fits; ``benchmarks/dense_strain_bands.py``). The first sets the grid's margin.
+DENSE_HALF_WINDOWS = (10, 7, 5)
 
 
-def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_zncc=None):
+def fill_dense_holes(ux, uy, window=DENSE_WINDOW, min_points=6):
+    """Interpolate the grid points without a measurement from their measured neighbours.
+
+    A grid point whose subset did not converge (at a slip band's step, where the surface
+    shears within a subset, or in a texture-free patch) would leave its strain window's plane
+    fit without the displacement there; at a step that takes part of the step out of the fit
+    (on the demo and three band series the missing points alone cost 30–60 % of the mean
+    E_yy a perfect tracker's grid gives, ``benchmarks/dense_strain_bands.py``). Each such
+    point inside the measured points' convex hull whose own window holds at least
+    ``min_points`` measured points gets the displacement linearly interpolated (Delaunay
+    triangles of the measured grid points, :func:`scipy.interpolate.griddata`): across a step,
+    a ramp that keeps the step's size. Points with fewer measured neighbours stay NaN.
+
+    Parameters
+    ----------
+    ux, uy : (H, W) arrays
+        Displacement on a regular grid (rows = y), any unit; NaN where not measured.
+    window : int
+        Strain window in grid points (odd).
+    min_points : int
+        Fewest measured points in a point's window for it to be filled.
+
+    Returns
+    -------
+    ux, uy : (H, W) arrays
+        With the holes filled.
+    filled : (H, W) bool array
+        True where the value is interpolated, not measured.
+    """
+    from scipy import ndimage
+    from scipy.interpolate import griddata
+
+    ux = np.array(ux, float)
+    uy = np.array(uy, float)
+    measured = np.isfinite(ux) & np.isfinite(uy)
+    k = int(window)
+    near = ndimage.correlate(measured.astype(float), np.ones((k, k)), mode="constant")
+    want = ~measured & (near >= min_points)
+    filled = np.zeros(ux.shape, bool)
+    if want.any() and measured.sum() >= 3:
+        rc = np.argwhere(measured).astype(float)
+        at = np.argwhere(want).astype(float)
+        vals = [griddata(rc, u[measured], at, method="linear") for u in (ux, uy)]
+        ok = np.isfinite(vals[0]) & np.isfinite(vals[1])
+        idx = tuple(np.argwhere(want)[ok].T)
+        ux[idx], uy[idx] = vals[0][ok], vals[1][ok]
+        filled[idx] = True
+    return ux, uy, filled
+
+
+def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_zncc=None,
+                       fill=True):
     """Deformation gradient and Green–Lagrange strain of a dense grid's displacements.
 
     Parameters
@@ -672,6 +727,9 @@ def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_z
     min_zncc : float, optional
         Leave out subsets below this ZNCC (None: every converged subset enters; see
         :data:`DENSE_MIN_ZNCC`).
+    fill : bool
+        Interpolate the points without a measurement before the plane fits
+        (:func:`fill_dense_holes`).
 
     Returns
     -------
@@ -679,25 +737,56 @@ def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_z
         ``(I − ∂U/∂x)⁻¹`` (NaN where the window has too few points).
     E : (H, W, 2, 2) array
         Green–Lagrange strain ``½(FᵀF − I)``.
+    filled : (H, W) bool array
+        Where the displacement entering the fits was interpolated (all False without ``fill``).
     """
     good = np.ones(np.shape(ux), bool)
     if min_zncc is not None:
         if zncc is None:
             raise SemlabError("dense_field_strain: min_zncc needs the subsets' zncc")
         good = np.asarray(zncc, float) >= min_zncc
-    G = gradient_from_field(np.where(good, ux, np.nan), np.where(good, uy, np.nan), spacing_um,
-                            window=window)
+    ux, uy = np.where(good, ux, np.nan), np.where(good, uy, np.nan)
+    if fill:
+        ux, uy, filled = fill_dense_holes(ux, uy, window)
+    else:
+        filled = np.zeros(np.shape(ux), bool)
+    G = gradient_from_field(ux, uy, spacing_um, window=window)
     eye = np.eye(2)
     finite = np.all(np.isfinite(G), axis=(-2, -1))
     F = np.full(G.shape, np.nan)
     F[finite] = np.linalg.inv(eye - G[finite])
-    return F, green_lagrange(F - eye)
+    return F, green_lagrange(F - eye), filled
+
+
+def _dense_match(last_img, ref_img, grid, guess, half_windows, smooth_sigma_px, progress):
+    """IC-GN of the dense grid's subsets (in ``last_img``, searched in ``ref_img`` from
+    ``grid + guess``), each with the largest of ``half_windows`` that converges (tried in turn
+    on the points still unmatched, not on those whose subset left the image). Returns
+    (positions in the reference frame, converged, zncc, half size or 0), per grid point."""
+    from .parallel import tiled_icgn
+    from .subset import OUTSIDE
+
+    n = len(grid)
+    pts, zncc = np.full((n, 2), np.nan), np.full(n, np.nan)
+    half = np.zeros(n, int)
+    todo = np.ones(n, bool)
+    for h in half_windows:
+        idx = np.flatnonzero(todo)
+        if not len(idx):
+            break
+        r = tiled_icgn(last_img, ref_img, grid[idx], grid[idx] + guess[idx], half_window=int(h),
+                       smooth_sigma_px=smooth_sigma_px, progress=progress)
+        ok = r.converged
+        pts[idx[ok]], zncc[idx[ok]], half[idx[ok]] = r.pts[ok], r.zncc[ok], int(h)
+        todo[idx[ok | (r.reason == OUTSIDE)]] = False
+    return pts, half > 0, zncc, half
 
 
 def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
                        grid_step_px=16, heights=None, progress=False,
                        dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC,
-                       dense_smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, sigma_px=None):
+                       dense_smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, sigma_px=None,
+                       dense_half_windows=DENSE_HALF_WINDOWS, dense_fill=True):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
 
     Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
@@ -748,7 +837,10 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     ``(E_xx, E_yy, E_xy)`` (dimensionless, NaN where ``E_lsq`` is or without ``sigma_px``),
     ``tri`` (T, 3), ``E_tri`` (T, 2, 2), ``E_tri_sigma`` (T, 3) likewise; dense ``grid_x_px``,
     ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
-    ``max_shear``, ``zncc``, ``dense_gauge_um``, and ``E_surface`` when heights are given.
+    ``max_shear``, ``zncc``, ``dense_gauge_um``, ``dense_filled`` (H, W) bool, where the
+    displacement entering the strain was interpolated (``ux_um``/``uy_um`` are NaN there),
+    ``dense_half_px`` (H, W) int, each point's subset half size (0: none converged; its
+    spatial resolution is ``2 h + 1`` pixels), and ``E_surface`` when heights are given.
 
     Examples
     --------
@@ -778,8 +870,6 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     ((100, 3), [0.001, 0.001, 0.0007])
     """
     from scipy.interpolate import griddata
-
-    from .parallel import tiled_icgn
 
     s = float(pixel_size_um)
     ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
@@ -816,7 +906,7 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
 
     # dense: subsets on a grid of the last frame, matched into the reference frame
     h, w = frames[-1].shape
-    half = 10
+    half = int(dense_half_windows[0])
     gx = np.arange(half + 2, w - half - 2, grid_step_px, dtype=float)
     gy = np.arange(half + 2, h - half - 2, grid_step_px, dtype=float)
     GX, GY = np.meshgrid(gx, gy)
@@ -826,19 +916,21 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
     guess = np.where(np.isfinite(guess), guess, near)
     # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
-    r = tiled_icgn(frames[-1], frames[ref_frame], grid, grid + guess, half_window=half,
-                   smooth_sigma_px=dense_smooth_sigma_px, progress=progress)
-    u = (grid - r.pts) * s  # U(x) = x_end - X_ref, µm
-    u[~r.converged] = np.nan
+    pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid, guess,
+                                         dense_half_windows, dense_smooth_sigma_px, progress)
+    u = (grid - pts) * s  # U(x) = x_end - X_ref, µm
+    u[~conv] = np.nan
     ux = u[:, 0].reshape(GX.shape)
     uy = u[:, 1].reshape(GX.shape)
-    zncc = r.zncc.reshape(GX.shape)
-    Fd, E = dense_field_strain(ux, uy, grid_step_px * s, dense_window, zncc, dense_min_zncc)
+    zncc = zncc.reshape(GX.shape)
+    Fd, E, filled = dense_field_strain(ux, uy, grid_step_px * s, dense_window, zncc,
+                                       dense_min_zncc, fill=dense_fill)
     out["dense_gauge_um"] = dense_window * grid_step_px * s
     eye = np.eye(2)
     e1, e2, ang = principal_strains(E)
     out.update(grid_x_px=gx, grid_y_px=gy, ux_um=ux, uy_um=uy, E=E, e1=e1, e2=e2, angle_deg=ang,
-               max_shear=max_shear(E), zncc=zncc)
+               max_shear=max_shear(E), zncc=zncc, dense_filled=filled,
+               dense_half_px=used.reshape(GX.shape))
     if heights is not None:
         z = heights(GX, GY)
         dzdy, dzdx = np.gradient(z, grid_step_px * s)

@@ -276,6 +276,13 @@ def test_strain_maps_directions_and_history():
     # the cells are centred on their grid points: edges half a spacing (5 px) beyond them
     assert fig.axes[0].images[0].get_extent() == pytest.approx(
         [-5 * 0.03, 95 * 0.03, 55 * 0.03, -5 * 0.03])
+    holes = np.zeros((6, 10), bool)
+    holes[2, 3] = holes[4, 7] = True
+    fig = plots.strain_maps(gx, gy, {"E_xx": e, "E_yy": -e}, interpolated=holes)
+    for ax in fig.axes[:2]:                    # each map marks the interpolated points
+        (dots,) = ax.lines
+        np.testing.assert_allclose(np.column_stack(dots.get_data()), [[30, 20], [70, 40]])
+        assert "interpolated" in ax.get_legend().get_texts()[0].get_text()
     fig = plots.strain_maps(gx, gy, {"E_xx": np.full((6, 10), np.nan)})   # nothing measured
     assert fig.axes[0].images[0].get_clim() == pytest.approx((-1e-6, 1e-6))
     ax = plots.principal_directions(gx, gy, e, np.zeros_like(e))
