@@ -690,6 +690,7 @@ def fill_dense_holes(ux, uy, window=DENSE_WINDOW, min_points=6):
     """
     from scipy import ndimage
     from scipy.interpolate import griddata
+    from scipy.spatial import QhullError
 
     ux = np.array(ux, float)
     uy = np.array(uy, float)
@@ -701,7 +702,10 @@ def fill_dense_holes(ux, uy, window=DENSE_WINDOW, min_points=6):
     if want.any() and measured.sum() >= 3:
         rc = np.argwhere(measured).astype(float)
         at = np.argwhere(want).astype(float)
-        vals = [griddata(rc, u[measured], at, method="linear") for u in (ux, uy)]
+        try:
+            vals = [griddata(rc, u[measured], at, method="linear") for u in (ux, uy)]
+        except QhullError:   # the measured points on one line: nothing lies between them
+            return ux, uy, filled
         ok = np.isfinite(vals[0]) & np.isfinite(vals[1])
         idx = tuple(np.argwhere(want)[ok].T)
         ux[idx], uy[idx] = vals[0][ok], vals[1][ok]

@@ -446,6 +446,10 @@ def test_fill_dense_holes_keeps_a_steps_size():
     F, E, fl = dense_field_strain(ux_h, uy_h, 1.0, window=7)
     assert np.array_equal(fl, filled) and np.isfinite(E[inner]).all()
     assert not dense_field_strain(ux_h, uy_h, 1.0, window=7, fill=False)[2].any()
+    # measured points all on one row: nothing to interpolate between, nothing filled
+    one = np.full(ux.shape, np.nan)
+    one[10] = 0.0
+    assert not fill_dense_holes(one, one, window=7)[2].any()
 
 
 def test_dense_strain_matches_beside_a_band_with_smaller_subsets():
