@@ -196,7 +196,12 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=Non
     hx = 0.5 * (gx[-1] - gx[0]) / (len(gx) - 1) if len(gx) > 1 else 0.5
     hy = 0.5 * (gy[-1] - gy[0]) / (len(gy) - 1) if len(gy) > 1 else 0.5
     ext = [(gx[0] - hx) * s, (gx[-1] + hx) * s, (gy[-1] + hy) * s, (gy[0] - hy) * s]
-    fig, axes = plt.subplots(1, len(maps), figsize=(4.5 * len(maps), 3.8), squeeze=False)
+    marked = interpolated is not None and bool(np.any(interpolated))
+    if marked:
+        mx, my = np.meshgrid(gx * s, gy * s)
+        m = np.asarray(interpolated, bool)
+    fig, axes = plt.subplots(1, len(maps), figsize=(4.5 * len(maps), 3.8 + 0.3 * marked),
+                             squeeze=False)
     for ax, (name, v) in zip(axes[0], maps.items()):
         finite = np.abs(np.asarray(v, float))
         finite = finite[np.isfinite(finite)]
@@ -207,13 +212,15 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=Non
         ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
         ax.tick_params(labelsize=REPORT_FONTSIZE)
         fig.colorbar(im, ax=ax, label="strain (–)")
-        if interpolated is not None and np.any(interpolated):
-            mx, my = np.meshgrid(gx * s, gy * s)
-            m = np.asarray(interpolated, bool)
-            ax.plot(mx[m], my[m], ".", color="0.4", ms=3,
+        if marked:
+            ax.plot(mx[m], my[m], ".", color="0.3", ms=2.5,
                     label="displacement interpolated (no subset matched)")
-            ax.legend(fontsize=REPORT_FONTSIZE - 1, loc="lower right")
-    fig.tight_layout()
+    if marked:   # one legend for the row, below it
+        fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="lower center",
+                   fontsize=REPORT_FONTSIZE, frameon=False)
+        fig.tight_layout(rect=(0, 0.07, 1, 1))
+    else:
+        fig.tight_layout()
     return fig
 
 
