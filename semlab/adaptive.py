@@ -358,6 +358,10 @@ def _total_error_select(ref, cur, pr, pg, target, hs, warp, iw, kw, k_nb, noise_
     met = conv & (any_fit if target == 0 else ok[choice, idx])
     t_ch = tot[choice, idx]
     reason = np.array(best.reason, dtype=object)
+    for i in np.flatnonzero(~conv):     # IC-GN's own reason at the largest size
+        why = runs[-1].reason[i] or ("its texture does not stand above the image noise "
+                                     "(predicted σ infinite)")
+        reason[i] = f"no subset converged (half sizes {hs[0]}–{hs[-1]} px; at {hs[-1]}: {why})"
     for i in np.flatnonzero(conv & ~met):
         reason[i] = (f"{TARGET_MISSED} (total error {t_ch[i]:.3f} px: sigma and curvature "
                      f"bias, at h={hs[choice[i]]}" + (")" if any_fit[i] else

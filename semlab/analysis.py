@@ -626,7 +626,7 @@ class Analysis:
             raise StepFailed("the dense height map is switched off (heightmap = false)")
 
         def compute():
-            res = self.stereo()
+            res = self._needs("stereo")
             try:
                 params = None
                 if self.config.heightmap_method == "variational":
@@ -683,8 +683,8 @@ class Analysis:
         exp, cfg = self.experiment, self.config
 
         def compute():
-            return series.run_strain(exp, self.tracking(), gauge_length_px=cfg.gauge_length_px,
-                                       progress=self.progress)
+            return series.run_strain(exp, self._needs("tracking"),
+                                     gauge_length_px=cfg.gauge_length_px, progress=self.progress)
 
         if not self.has_series:
             raise StepFailed(f"{exp.toml_path}: no [series] table, so no strain")
@@ -710,6 +710,30 @@ class Analysis:
         if self.experiment.truth_dir is not None:
             methods.append("auto")
         return [m for m in methods if m != self.config.stereo_method]
+
+    def _needs(self, step):
+        """The result of the step another one builds on; its failure, already named on its
+        own, becomes a one-line reason of the dependent step instead of a repeat of it."""
+        try:
+            return getattr(self, step)()
+        except StepFailed:
+            raise StepFailed(f"it needs the {step} step, which failed") from None
+
+    def optional(self, step, **kwargs):
+        """The result of ``step`` (``"stereo"``, ``"heightmap"``, ``"tracking"``,
+        ``"strain"``), or None when the step failed, its error printed.
+
+        For the notebooks: a step that cannot produce its result (every track lost in a
+        featureless series, no frame with enough tracks for strain) is one error of that
+        step, named by ``semlab run`` in its message and exit status; the other steps' results
+        and reports are still written. ``kwargs`` go to the step (e.g. ``method="raw"``).
+        """
+        check_keywords("Analysis.optional", [step], STEPS)
+        try:
+            return getattr(self, step)(**kwargs)
+        except StepFailed as exc:
+            print(exc)
+            return None
 
     def run(self, steps=None):
         """Run ``steps`` (default: every applicable step) and record their status.

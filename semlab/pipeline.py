@@ -250,8 +250,10 @@ def match_views(views, clicks=None, method="auto", progress=True, refine_kw=None
     sig = np.concatenate([p[2] for p in parts]).astype(float)
     idx = np.concatenate([p[3] for p in parts]).astype(int)
     if len(pts) < 4:
-        raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; add "
-                            "clicks or use automatic matching")
+        hint = ("the views have too little texture for automatic matching; click points "
+                "(method refined)" if method == "auto" else
+                "add clicks or use automatic matching")
+        raise GeometryError(f"only {len(pts)} matched points: heights need at least 4; {hint}")
     if not with_partial:
         return pts, kind, sig, idx
     if partial is not None and len(partial):

@@ -115,6 +115,14 @@ def test_adaptive_errors():
         adaptive_icgn(ref, cur, [[30.0, 30.0]], [[30.0, 30.0]], warp="quadratic")
     a = adaptive_icgn(ref, cur, [[2.0, 2.0]], [[2.0, 2.0]])
     assert not a.subset.converged[0] and a.half_window[0] == 0 and a.subset.reason[0]
+    # sized by the total error: a point no size can match says why (IC-GN's reason), not
+    # "no subset tried" (the refined clicks of a featureless scene said so 46 times)
+    flat = np.full((60, 60), 100.0) + np.random.default_rng(0).normal(0, 1e-3, (60, 60))
+    a = adaptive_icgn(flat, flat, [[30.0, 30.0]], [[30.0, 30.0]], half_windows=(5, 7),
+                      curvature_neighbours=1)
+    assert not a.subset.converged[0]
+    assert a.subset.reason[0].startswith("no subset converged (half sizes 5–7 px; at 7: ")
+    assert "tried" not in a.subset.reason[0] and len(a.subset.reason[0]) > 50
 
 
 def test_curvature_aware_sizing_on_a_sinusoidal_displacement():

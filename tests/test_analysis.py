@@ -106,7 +106,7 @@ def test_stereo_subsets_sized_by_information_and_fixed_on_request(computed, monk
 
 
 def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experiment, tmp_path,
-                                                                 monkeypatch):
+                                                                 monkeypatch, capsys):
     calls = []
 
     def broken(*a, **k):
@@ -124,6 +124,11 @@ def test_a_failed_step_is_an_error_every_time_and_leaves_no_file(small_experimen
         fresh.tracking()
     assert len(calls) == 1  # cached failure: not recomputed by later callers
     assert not (tmp_path / "out" / "tracks.csv").exists()
+    # for the notebooks: None and the error printed, once per call, not a traceback
+    assert fresh.optional("tracking") is None
+    assert "the tracks are all lost" in capsys.readouterr().out
+    with pytest.raises(TypeError, match="tracking"):
+        fresh.optional("trackin")
 
 
 def test_a_writer_failing_half_way_leaves_no_result_file(small_experiment, tmp_path, monkeypatch):

@@ -5,6 +5,7 @@ import sys
 import numpy as np
 import pytest
 
+import semlab
 from semlab.cli import main
 
 
@@ -114,6 +115,32 @@ def test_run_failing_notebook_gives_error_and_nonzero_exit(small_experiment_mast
     assert main(["run", str(small_experiment_master), "--out", str(out), "--only", "00",
                  "--quiet"]) == 0
     assert (out / "00_ok.html").is_file() and not failed.exists()
+
+
+@pytest.mark.slow
+def test_run_with_a_failed_tracking_step_keeps_the_rest(small_experiment_master, tmp_path,
+                                                        monkeypatch, capsys):
+    """A series whose tracking fails (every track lost, as on a featureless series): the
+    notebooks of the series say so once and go on, the stereo results and the whole report
+    are written, and the run ends with an error naming the tracking step (it stopped in
+    notebook 05 with no result file at all before)."""
+    from semlab import series
+
+    def lost(*a, **k):
+        raise semlab.SemlabError("every track was lost at the first step (a test)")
+
+    monkeypatch.setattr(series, "run_tracking", lost)
+    out = tmp_path / "report"
+    assert main(["run", str(small_experiment_master), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "step 'tracking' failed" in err and err.count("every track was lost") == 1
+    assert "step 'strain' failed: it needs the tracking step, which failed" in err
+    files = {p.name for p in out.iterdir()}
+    assert {"points3d.csv", "calibration.json", "index.html", "05_tracking.html",
+            "07_strain.html", "08_validation.html"} <= files
+    assert not files & {"tracks.csv", "strain.npz", "failed_run"}
+    nb = (out / "05_tracking.ipynb").read_text()
+    assert "every track was lost at the first step (a test)" in nb
 
 
 @pytest.mark.slow
