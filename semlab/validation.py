@@ -453,7 +453,8 @@ def true_track_positions(truth, seeds_last_px):
 
     Returns
     -------
-    (F, N, 2) array of (x, y) pixels, frame 0 the earliest.
+    (F, N, 2) array of (x, y) pixels, frame 0 the earliest: each frame's own pixels, with
+    the stage and scan drift of a drifted series (``truth/drift.csv``) included.
     """
     f = load_fields(truth)
     s = float(f["pixel_size_um"])
@@ -465,7 +466,18 @@ def true_track_positions(truth, seeds_last_px):
     ux = ndimage.map_coordinates(f["ux_um"].astype(float), coords, order=3, mode="nearest")
     uy = ndimage.map_coordinates(f["uy_um"].astype(float), coords, order=3, mode="nearest")
     left = 1.0 - np.asarray(f["f"], float)  # fraction of U still to come at each frame
-    return np.stack([np.column_stack([p[:, 0] - r * ux / s, p[:, 1] - r * uy / s]) for r in left])
+    pos = np.stack([np.column_stack([p[:, 0] - r * ux / s, p[:, 1] - r * uy / s]) for r in left])
+    drift_csv = _truth_dir(truth) / "drift.csv"
+    if drift_csv.is_file():   # a drifted series: each frame's own pixels (synth --drift)
+        from .registration import read_drift_csv
+        from .synth_drift import DRIFT_TRUTH_COLUMNS, drifted_positions
+
+        d = read_drift_csv(drift_csv)
+        shape = (2 * len(f["y_px"]), 2 * len(f["x_px"]))   # fields on every other pixel
+        for n in range(len(pos)):
+            pos[n] = drifted_positions({c: d[c][n] for c in DRIFT_TRUTH_COLUMNS[1:]}, pos[n],
+                                       shape)
+    return pos
 
 
 def true_displacement_um(truth, seeds_last_px):

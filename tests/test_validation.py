@@ -38,6 +38,27 @@ def test_true_heights_and_tracks_match_truth_points(small_experiment_master):
         validation.true_height_at(root / "end_state", p0)
 
 
+def test_true_tracks_of_a_drifted_series_are_in_each_frames_own_pixels(tmp_path):
+    """With stage and scan drift (synth --drift) every frame but the last is moved: the
+    true track positions are where the material points appear in each drifted frame, as
+    truth/points.csv has them (before, the undrifted positions: 'errors' of ~15 px on
+    tracks that were right)."""
+    root = tmp_path / "exp"
+    synth.make_experiment(root, seed=0, size=(96, 128), tilts_deg=(), n_frames=3, n_clicks=0,
+                          drift_shift_px=12.0, drift_rotation_deg=1.0, drift_scale=0.003,
+                          scan_drift_px=0.5, progress=False)
+    t = synth.read_truth_points(root / "truth")
+    grid = t["is_particle"] == 0
+    last = np.column_stack([t["f2_x_px"], t["f2_y_px"]])[grid]
+    pos = validation.true_track_positions(root, last)
+    moved = []
+    for n in range(3):
+        true_n = np.column_stack([t[f"f{n}_x_px"], t[f"f{n}_y_px"]])[grid]
+        assert np.median(np.hypot(*(pos[n] - true_n).T)) < 0.01
+        moved.append(np.median(np.hypot(*(true_n - last).T)))
+    assert min(moved[:2]) > 5            # the drift is there to be got right
+
+
 def test_robust_gauge_plane_ignores_gross_errors():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-5, 5, (200, 2))
