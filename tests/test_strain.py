@@ -387,25 +387,35 @@ def test_triangle_gradient_sigma_matches_monte_carlo():
     assert np.isnan(Cn[bad]).all() and np.isfinite(Cn[~bad]).all()
 
 
+def _slip_step_series(amp_px, x0_px, width_px, n=160, seed=2):
+    """Two frames of a 160 px texture, the last slipped along y by ``amp_px`` across a step
+    at ``x0_px`` (a tanh of ``width_px``): ``(f0, f1, step, xx, xy, valid, rng)`` with
+    ``step(x)`` the slip in px, ``xx`` the x pixel coordinates, tracks ``xy`` (2, N, 2) on a
+    10 px grid with their true positions, all ``valid``, and the generator for more draws."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    f1 = ndimage.gaussian_filter(rng.normal(size=(n, n)), 1.5)
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+
+    def step(x):
+        return amp_px * 0.5 * (1 + np.tanh((x - x0_px) / width_px))
+
+    f0 = ndimage.map_coordinates(f1, [yy + step(xx), xx], order=3, mode="nearest")
+    g = np.stack(np.meshgrid(np.arange(16.0, n - 16, 10), np.arange(16.0, n - 16, 10)),
+                 -1).reshape(-1, 2)
+    xy = np.stack([np.column_stack([g[:, 0], g[:, 1] - step(g[:, 0])]), g])
+    return f0, f1, step, xx, xy, np.ones(xy.shape[:2], bool), rng
+
+
 def test_dense_strain_keeps_the_band_subsets():
     """A slip band whose new surface changes the last frame's look (ZNCC 0.4–0.95 there) but
     whose step the subsets still measure: the dense strain's mean is the one the same window
     gives from the true displacement; with the former ZNCC floor 0.95 the band's subsets are
     left out and a third of the band's shear is lost."""
-    from scipy import ndimage
-
-    rng = np.random.default_rng(2)
-    n, amp, w = 160, 1.5, 1.5                # px of slip along y across a band at x = 80
-    f1 = ndimage.gaussian_filter(rng.normal(size=(n, n)), 1.5)
-    yy, xx = np.mgrid[0:n, 0:n].astype(float)
-    step = lambda x: amp * 0.5 * (1 + np.tanh((x - 80) / w))  # noqa: E731
-    f0 = ndimage.map_coordinates(f1, [yy + step(xx), xx], order=3, mode="nearest")
+    f0, f1, step, xx, xy, valid, _ = _slip_step_series(1.5, 80.0, 1.5)  # 1.5 px of slip
     band = np.exp(-((xx - 80) / 4.0) ** 2)
     f1 = f1 * (1 + 1.5 * band) + 0.3 * band      # the band brighter in the last frame only
-    g = np.stack(np.meshgrid(np.arange(16.0, n - 16, 10), np.arange(16.0, n - 16, 10)),
-                 -1).reshape(-1, 2)
-    xy = np.stack([np.column_stack([g[:, 0], g[:, 1] - step(g[:, 0])]), g])
-    valid = np.ones(xy.shape[:2], bool)
     # without filling the holes (which would interpolate the floored subsets)
     kw = dict(pixel_size_um=0.03, ref_frame=0, gauge_length_px=30.0, dense_fill=False)
     S = strain_from_tracks([f0, f1], xy, valid, **kw)
@@ -458,18 +468,10 @@ def test_dense_strain_matches_beside_a_band_with_smaller_subsets():
     with them the plane fits see the step (without filling the holes)."""
     from scipy import ndimage
 
-    rng = np.random.default_rng(2)
-    n, amp, x0 = 160, 3.0, 83.0
-    f1 = ndimage.gaussian_filter(rng.normal(size=(n, n)), 1.5)
-    yy, xx = np.mgrid[0:n, 0:n].astype(float)
-    step = lambda x: amp * 0.5 * (1 + np.tanh((x - x0) / 0.3))  # noqa: E731
-    f0 = ndimage.map_coordinates(f1, [yy + step(xx), xx], order=3, mode="nearest")
-    fresh = ndimage.gaussian_filter(rng.normal(size=(n, n)), 1.5)
+    x0 = 83.0
+    f0, f1, step, xx, xy, valid, rng = _slip_step_series(3.0, x0, 0.3)
+    fresh = ndimage.gaussian_filter(rng.normal(size=f1.shape), 1.5)
     f1 = np.where(np.abs(xx - x0) <= 3, fresh, f1)
-    g = np.stack(np.meshgrid(np.arange(16.0, n - 16, 10), np.arange(16.0, n - 16, 10)),
-                 -1).reshape(-1, 2)
-    xy = np.stack([np.column_stack([g[:, 0], g[:, 1] - step(g[:, 0])]), g])
-    valid = np.ones(xy.shape[:2], bool)
     kw = dict(pixel_size_um=0.03, ref_frame=0, gauge_length_px=30.0, dense_fill=False)
     S = strain_from_tracks([f0, f1], xy, valid, **kw)
     S1 = strain_from_tracks([f0, f1], xy, valid, dense_half_windows=(10,), **kw)
