@@ -127,7 +127,10 @@ def refine_correspondences(images, pts, ref_view=0, half_window=10, search_px=4,
         background clicks 3-12 px from the edge had 0.7-1.0 px errors at σ 0.02-0.07
         px, offsets 0.79-0.87 of the half size 5-12 px from the edge). 2/3: the
         information in the outer third of the subset on one side; clicks on textured
-        synthetic scenes reach 0.52. None: keep them.
+        synthetic scenes reach 0.52, but clicks on an intrusion beside an extrusion's bright
+        flank reach 0.67–0.92 and are right (seed 1's crack clicks: all 30 it left out of
+        three experiments within 1.4σ of the truth without it,
+        ``benchmarks/results/info_offset_clicks.md``). None: keep them.
     progress : bool
         Show progress bars.
 
