@@ -32,11 +32,12 @@ SPECS = ("polished@0@-5,5", "polished@1@-5,5", "polished@2@-5,5", "polished@1@-5
 DATA = HERE.parent.parent / "shared" / "data" / "real_sem"
 
 
-def true_click_positions(exp, pts_view0, tilts):
-    """(N, V, 2) true pixel positions, in every view, of the material points under the view-0
-    clicks (``truth/view0_material.npz``, the affine camera of ``semlab.synth``)."""
+def true_click_positions(exp, shape, pts_view0, tilts):
+    """(N, V, 2) true pixel positions, in every view (``shape`` (H, W)), of the material
+    points under the view-0 clicks (``truth/view0_material.npz``, the affine camera of
+    ``semlab.synth``)."""
     m = np.load(Path(exp.truth_dir) / "view0_material.npz")
-    c = synth.image_center(exp.views()[0].shape)
+    c = synth.image_center(shape)
     s = exp.pixel_size_um
     co = [pts_view0[:, 1], pts_view0[:, 0]]
     X, Y, Z = (ndimage.map_coordinates(m[k].astype(float), co, order=1)
@@ -57,7 +58,7 @@ def run(spec, tmp):
                                      tilts_deg=tilts, n_frames=0, progress=False)
     exp = experiment.load(toml)
     views, pts = exp.views(), exp.correspondences().pts
-    true = true_click_positions(exp, pts[:, 0], tilts)
+    true = true_click_positions(exp, views[0].shape, pts[:, 0], tilts)
     on = refine_correspondences(views, pts)
     off = refine_correspondences(views, pts, max_info_offset=None)
     left = ~np.asarray(on.valid) & (np.char.find(np.asarray(on.reason).astype(str),

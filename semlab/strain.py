@@ -647,8 +647,9 @@ def strain_history(tracks_xy_per_frame, cycles, valid=None, ref_frame=0, pixel_s
 #: whose appearance changes as they deform (ZNCC 0.4-0.95) but whose displacements are
 #: measured, so the plane fits missed the bands' steps (``benchmarks/dense_strain_bands.py``);
 #: the noise of textureless subsets, which it was for, is averaged by the strain window (on a
-#: uniform strain without bands the dense median is within 3.0 % of the truth instead of
-#: 1.9 %, at most 3e-4 in strain).
+#: uniform strain without bands the dense median is within 2.1 % of the truth, with the
+#: smaller subsets and the interpolation of DENSE_HALF_WINDOWS and fill_dense_holes; 1.9 %
+#: with the floor; ``benchmarks/results/dense_strain_bands.md``).
 DENSE_SMOOTH_SIGMA_PX = 0.8
 DENSE_MIN_ZNCC = None
 DENSE_WINDOW = 7
@@ -665,12 +666,13 @@ def fill_dense_holes(ux, uy, window=DENSE_WINDOW, min_points=6):
     A grid point whose subset did not converge (at a slip band's step, where the surface
     shears within a subset, or in a texture-free patch) would leave its strain window's plane
     fit without the displacement there; at a step that takes part of the step out of the fit
-    (on the demo and three band series the missing points alone cost 30–60 % of the mean
-    E_yy a perfect tracker's grid gives, ``benchmarks/dense_strain_bands.py``). Each such
-    point inside the measured points' convex hull whose own window holds at least
+    (a perfect tracker's grid with the speckle band series' unmatched points missing gives a
+    mean E_yy of 0.0009 instead of 0.0030, ``benchmarks/results/dense_strain_bands.md``).
+    Each such point inside the measured points' convex hull whose own window holds at least
     ``min_points`` measured points gets the displacement linearly interpolated (Delaunay
     triangles of the measured grid points, :func:`scipy.interpolate.griddata`): across a step,
-    a ramp that keeps the step's size. Points with fewer measured neighbours stay NaN.
+    a ramp that keeps the step's size. Points outside the hull or with fewer measured
+    neighbours stay NaN.
 
     Parameters
     ----------
@@ -730,7 +732,8 @@ def dense_field_strain(ux, uy, spacing_um, window=DENSE_WINDOW, zncc=None, min_z
         The subsets' ZNCC, for ``min_zncc``.
     min_zncc : float, optional
         Leave out subsets below this ZNCC (None: every converged subset enters; see
-        :data:`DENSE_MIN_ZNCC`).
+        :data:`DENSE_MIN_ZNCC`); with ``fill`` they are then interpolated like the points
+        that did not converge.
     fill : bool
         Interpolate the points without a measurement before the plane fits
         (:func:`fill_dense_holes`).
@@ -797,10 +800,12 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
     disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
     the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
-    tracks; every converged subset enters, or with ``dense_min_zncc`` only those with at least
-    that ZNCC, and the gradient is the plane fit over ``dense_window`` × ``dense_window`` grid
-    points, a gauge of
-    ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
+    tracks; each point's subset the largest of ``dense_half_windows`` that converges, so a
+    point beside a slip band's step is matched by a subset that does not straddle it; every
+    converged subset enters, or with ``dense_min_zncc`` only those with at least that ZNCC;
+    with ``dense_fill`` the points left without a match are interpolated from their
+    neighbours, :func:`fill_dense_holes`; the gradient is the plane fit over ``dense_window``
+    × ``dense_window`` grid points, a gauge of ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
     ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
     (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
     out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
