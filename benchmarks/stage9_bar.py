@@ -59,10 +59,10 @@ def record_stage9(exp):
     rec = {}
     real_iv, real_sp = fusion.inverse_variance, fusion.sample_parallax
 
-    def iv(a, sa, b, sb, weight_sigma_b=None):
+    def iv(a, sa, b, sb, weight_sigma_b=None, shared_sigma=None):
         rec.update(a=np.array(a)[:, 0], sa=np.array(sa), b=np.array(b)[:, 0],
-                   sp=np.array(sb), sw=np.array(weight_sigma_b))
-        return real_iv(a, sa, b, sb, weight_sigma_b=weight_sigma_b)
+                   sp=np.array(sb), sw=np.array(weight_sigma_b), sm=np.array(shared_sigma))
+        return real_iv(a, sa, b, sb, weight_sigma_b=weight_sigma_b, shared_sigma=shared_sigma)
 
     def sp(dense, pts, sigma="sigma_px"):
         if sigma == "sigma_px":

@@ -102,7 +102,7 @@ def fuse_heightmaps(subset, variational):
                    notes=list(subset.notes) + [note])
 
 
-def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None):
+def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None, shared_sigma=None):
     """Inverse-variance average of two estimates of the same quantities.
 
     Parameters
@@ -117,6 +117,13 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None):
         ``sqrt(w² σ_a² + (1 − w)² σ_b²)`` with ``sigma_b`` (stage 9 of
         :func:`semlab.matching.auto_match`: the variational map's noise-plus-bias σ for the
         weight, its posterior σ for the bar). Default ``sigma_b``.
+    shared_sigma : (N,) array, optional
+        The part of ``sigma_a`` (in quadrature) that ``b``'s error repeats with the same sign,
+        so that averaging does not shrink it: the average's 1σ is then
+        ``sqrt(w² (σ_a² − σ_s²) + (1 − w)² σ_b² + σ_s²)`` (the weight is unchanged). Stage 9
+        gives the subset's model error here: a slip band's wall is rounded by the subset
+        and by the map alike (their errors correlate, ``benchmarks/results/stage9_bar.md``),
+        and the map's plug-in bias, taken from its own rounded estimate, misses it.
 
     Returns
     -------
@@ -163,6 +170,13 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None):
             s_both = np.hypot((1.0 - wb) * sa1, wb * sb1)
     w = wb.reshape((-1,) + (1,) * (a.ndim - 1))
     fused = np.where(w > 0, w * np.nan_to_num(b) + (1 - w) * np.where(w < 1, a, 0.0), a)
+    if shared_sigma is not None:
+        sh = np.asarray(shared_sigma, float).ravel()
+        if len(sh) != len(a):
+            raise SemlabError(f"inverse_variance: {len(sh)} shared σ for {len(a)} rows")
+        sh2 = np.minimum(np.where(np.isfinite(sh), sh, 0.0) ** 2, sa1 ** 2)
+        # w² σa² − w² σs² + σs² (w the subset's weight): the shared part kept in full
+        s_both = np.sqrt(s_both ** 2 + (1.0 - (1.0 - wb) ** 2) * sh2)
     sigma = np.where(both, s_both, np.where(ok_b & ~ok_a, sb, sa))
     return fused, sigma, wb
 

@@ -832,7 +832,9 @@ def _stage_variational(st):
     point (:func:`semlab.fusion.agreement_scale` with ``xy``); with three or more views the
     average is kept only where it predicts the other views' matches better than the subset
     matches alone do (:func:`semlab.fusion.held_out_error`). Their 1σ become the
-    average's (``st.fused_sig``)."""
+    average's (``st.fused_sig``), with the subset's model error kept in full: the map rounds a
+    slip band's wall as the subset does, so averaging does not shrink that part
+    (``benchmarks/results/stage9_wall_bars.md``)."""
     if not st.params.variational_fusion:
         return
     from . import fusion, variational
@@ -880,7 +882,8 @@ def _stage_variational(st):
         k = fusion.agreement_scale(st.out[idx, j, 0], sig[idx, j], xy1[:, 0], s1w,
                                    xy=st.grid[idx])
         fused, s_f, wv = fusion.inverse_variance(st.out[idx, j], sig[idx, j], xy1, k * s1,
-                                                 weight_sigma_b=k * s1w)
+                                                 weight_sigma_b=k * s1w,
+                                                 shared_sigma=st.model_x[idx, j])
         held = _held_out_positions(subsets, st.vv, st.ref, j, idx)
         if held is not None and not _average_predicts_better(
                 st.out[idx, j, 0], fused[:, 0], wv, st.sig_ap[idx, j], k * s1w, held):

@@ -116,6 +116,33 @@ def test_inverse_variance_known_answers_and_scatter():
         inverse_variance(a, np.ones(4), b, np.ones(4), weight_sigma_b=[1.0])
 
 
+def test_inverse_variance_keeps_a_shared_error_in_full():
+    """An error both estimates carry (a wall rounded by the subset and the map alike) is not
+    averaged away: the average's 1σ keeps it in full, and then matches the scatter."""
+    from semlab.fusion import inverse_variance
+
+    f, s, wb = inverse_variance(np.zeros((1, 2)), [np.sqrt(2.0)], np.ones((1, 2)), [1.0],
+                                shared_sigma=[1.0])
+    # w_b = 2 / 3: sqrt((1/3)² (2 − 1) + (2/3)² 1 + 1)
+    assert np.isclose(wb[0], 2 / 3) and np.isclose(s[0], np.sqrt(1 / 9 + 4 / 9 + 1))
+    rng = np.random.default_rng(1)
+    n = 20000
+    ss, na, nb = rng.uniform(0.2, 1.5, n), rng.uniform(0.5, 2, n), rng.uniform(0.3, 1, n)
+    shared = rng.normal(0, ss)
+    a, b = shared + rng.normal(0, na), shared + rng.normal(0, nb)
+    sa = np.hypot(ss, na)
+    f, s, _ = inverse_variance(a, sa, b, nb, shared_sigma=ss)
+    assert abs(np.std(f / s) - 1) < 0.02
+    f0, s0, _ = inverse_variance(a, sa, b, nb)          # without: the bar is too small
+    assert np.std(f0 / s0) > 1.2
+    # a shared σ above σ_a is capped at σ_a; NaN means none; one per row
+    _, s1, _ = inverse_variance(np.zeros(2), [1.0, 1.0], np.zeros(2), [1.0, 1.0],
+                                shared_sigma=[5.0, np.nan])
+    assert np.isclose(s1[0], np.sqrt(0.25 + 1.0)) and np.isclose(s1[1], np.sqrt(0.5))
+    with pytest.raises(SemlabError, match="shared σ"):
+        inverse_variance(np.zeros(2), [1.0, 1.0], np.zeros(2), [1.0, 1.0], shared_sigma=[1.0])
+
+
 def test_sample_parallax_bilinear_and_holes():
     from semlab.fusion import sample_parallax
     from semlab.heightmap import DenseParallax

@@ -714,7 +714,7 @@ def test_variational_stage_scales_the_map_where_it_disagrees(monkeypatch):
     xy=...)``): a map wrong on part of the view only (errors 4× its σ left of x = 60 px, a
     third of the points; a tall object it misses) leaves the global scale at 1, its median
     seeing the rest, and the average there is worse than the subsets alone (27 against 19 nm,
-    43 % within 2σ); the local scale down-weights the map there (21 nm, 86 %) and leaves the
+    70 % within 2σ); the local scale down-weights the map there (21 nm, 90 %) and leaves the
     rest as it was."""
     from dataclasses import replace
 
@@ -754,7 +754,7 @@ def test_variational_stage_scales_the_map_where_it_disagrees(monkeypatch):
     monkeypatch.setattr(fu, "agreement_scale", whole_view)
     whole = run()
     assert global_k == [1.0]
-    assert whole[0] > 1.2 * subsets[0] and whole[1] < 0.6, (whole, subsets)
+    assert whole[0] > 1.2 * subsets[0] and whole[1] < 0.8, (whole, subsets)
     assert local[0] < 0.85 * whole[0] and local[1] >= 0.8, (local, whole)
     assert local[2] < 1.02 * whole[2], (local, whole)
 
@@ -843,7 +843,7 @@ def test_variational_stage_weighs_the_map_by_its_error_for_this_surface(monkeypa
     own roughness (on flat parts about twice the map's error with the band prior) and so
     gives the subsets too much weight: on the ribbon scene the height error is lower (9.1
     against 9.7 nm with the posterior σ as the weight), with the average's bar from the
-    posterior σ still holding (70 % / 94 % within 1σ / 2σ)."""
+    posterior σ and the subset's model error still holding (90 % / 99 % within 1σ / 2σ)."""
     import semlab.fusion as fu
 
     sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)
@@ -852,9 +852,9 @@ def test_variational_stage_weighs_the_map_by_its_error_for_this_surface(monkeypa
     real = fu.sample_parallax
     weights = []
 
-    def spy_iv(a, sa, b, sb, weight_sigma_b=None, _iv=fu.inverse_variance):
+    def spy_iv(a, sa, b, sb, weight_sigma_b=None, shared_sigma=None, _iv=fu.inverse_variance):
         weights.append((np.asarray(sb), np.asarray(weight_sigma_b)))
-        return _iv(a, sa, b, sb, weight_sigma_b)
+        return _iv(a, sa, b, sb, weight_sigma_b, shared_sigma)
 
     def run():
         v = auto_match(ims, spacing_px=8, progress=False).only_valid()
@@ -874,30 +874,50 @@ def test_variational_stage_weighs_the_map_by_its_error_for_this_surface(monkeypa
     monkeypatch.setattr(fu, "sample_parallax", lambda dm, p, sigma="sigma_px": real(dm, p))
     old = run()
     assert new[0] < 0.96 * old[0], (new, old)
-    assert 0.5 <= new[1] <= 0.85 and new[2] >= 0.88, new
+    assert 0.5 <= new[1] <= 0.95 and new[2] >= 0.95, new
 
 
-def test_variational_stage_lowers_the_height_error():
+def test_variational_stage_lowers_the_height_error(monkeypatch):
     """Stage 9 earns its place: on noisy views of the ribbon scene with sharp flanks (relief
     below the subset scale), averaging each accepted point's subset match with the
-    variational map's estimate there lowers the height error at the same points (14.6
-    against 18.8 nm), and the averaged error bars about hold (60 % / 90 % within 1σ / 2σ;
-    without the stage 72 % / 93 %)."""
+    variational map's estimate there lowers the height error at the same points (9.1
+    against 18.6 nm). Its bars hold on the flanks (45 points with a true slope above 0.1: 96 %
+    within 2σ; 90 % / 99 % within 1σ / 2σ over all) because the subset's model error, which the
+    map repeats there (both round the flank), is kept in full (``inverse_variance``'s
+    ``shared_sigma``); averaged away with the rest of the subset's σ the flanks' bars are too
+    small (76 % within 2σ; 70 % / 94 % over all)."""
+    import semlab.fusion as fu
+
     sc = Scene(seed=2, shape=(150, 200), edge_um=0.1)
     ims = [sc.render(TILTS[0], noise=0.3, seed=1), sc.render(TILTS[1], noise=0.3, seed=2)]
     t0, t1 = np.deg2rad(TILTS)
-    rms, held, res = {}, {}, {}
-    for on in (True, False):
-        a = auto_match(ims, spacing_px=8, progress=False, variational_fusion=on)
-        res[on] = a
+
+    def run(**kw):
+        a = auto_match(ims, spacing_px=8, progress=False, **kw)
         v = a.only_valid()
         x, y = sc.material(v.pts[:, 0, 0], v.pts[:, 0, 1], TILTS[0])
         err = heights_from(v.pts, sc.c[0]) - sc.z(x, y)
         err -= err.mean()
         z_sig = v.sigma_px * S_UM * np.cos(t0) / np.sin(t1 - t0)
-        rms[on] = np.sqrt(np.mean(err ** 2))
-        held[on] = (np.mean(np.abs(err) < z_sig), np.mean(np.abs(err) < 2 * z_sig))
-    assert np.array_equal(res[True].valid, res[False].valid)   # the same points
-    assert res[True].params.variational_fusion and not res[False].params.variational_fusion
-    assert rms[True] < 0.85 * rms[False], rms
-    assert 0.5 <= held[True][0] <= 0.85 and held[True][1] >= 0.85, held
+        h = 0.01       # µm: the true slope at the point picks the flanks
+        slope = np.hypot(sc.z(x + h, y) - sc.z(x - h, y),
+                         sc.z(x, y + h) - sc.z(x, y - h)) / (2 * h)
+        flank = slope > 0.1
+        within = lambda m, k: np.mean(np.abs(err[m]) < k * z_sig[m])  # noqa: E731
+        every = np.ones(len(err), bool)
+        return a, np.sqrt(np.mean(err ** 2)), (within(every, 1), within(every, 2),
+                                               within(flank, 2), int(flank.sum()))
+
+    on, rms_on, held = run()
+    off, rms_off, _ = run(variational_fusion=False)
+    assert np.array_equal(on.valid, off.valid)   # the same points
+    assert on.params.variational_fusion and not off.params.variational_fusion
+    assert rms_on < 0.85 * rms_off, (rms_on, rms_off)
+    # without the shared model error the flanks' bars are too small
+    real_iv = fu.inverse_variance
+    monkeypatch.setattr(fu, "inverse_variance",
+                        lambda *a, shared_sigma=None, **k: real_iv(*a, **k))
+    _, rms_avg, held_avg = run()
+    assert held[3] >= 20 and 0.5 <= held[0] <= 0.95 and held[1] >= 0.95 and held[2] >= 0.93, held
+    assert rms_avg == rms_on                     # the same estimates: only the bar differs
+    assert held_avg[2] < 0.85 and held_avg[1] < held[1], (held_avg, held)
