@@ -353,7 +353,10 @@ def auto_match(images, params=None, *, progress=True, features=None, **overrides
         within 1σ (``benchmarks/results/accuracy_matrix_band_default.md``); with the two-view
         weight by the map's noise-plus-bias σ (since c991361): 0.28–0.62× (seed 0) and
         0.28–0.75× (seed 1) on all sixteen, ≥ 95 % within 2σ, 78–97 % within 1σ (the bars
-        conservative: ``benchmarks/results/accuracy_matrix_stage9_local.md``). It costs one
+        conservative: ``benchmarks/results/accuracy_matrix_stage9_local.md``); with the
+        subset's model error kept in full in the average's bar (since 727a2a9), 98–100 %
+        within 2σ and 87–98 % within 1σ on the sixteen, 90–99 % within 2σ on their slip-band
+        walls, which were 53–95 % (``benchmarks/results/stage9_wall_bars.md``). It costs one
         variational map per view pair: ``auto_match`` took 3–5× as long with the isotropic
         prior (single thread, 2026-12-04: the 384×512 demo pair 2.2 → 8.3 s; a 2048×1536 pair's
         ``run_stereo`` 34 → 182 s), and the band prior makes the map ~2.5× slower again (the
