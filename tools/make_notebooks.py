@@ -65,17 +65,18 @@ if Path(experiment).resolve() in (DEMO, DEMO / "experiment.toml"):
 """)
 
 
-def check_demo(text, condition):
+def check_demo(text, condition, extra=""):
     """A known-answer cell against the demo's ground truth: ``text`` computes the key numbers
     and prints them; on the shipped demo the cell asserts ``condition`` (an expression of
-    those numbers), so nbval fails on a wrong result. On other experiments it only prints."""
+    those numbers), so nbval fails on a wrong result. On other experiments it only prints.
+    ``extra``: more lines of the demo's block (indented by four spaces)."""
     return code(text.strip("\n") + f"""
 # the shipped demo has a known answer: a wrong number fails the notebook (nbval in CI)
 from pathlib import Path
 DEMO = Path(semlab.__file__).resolve().parents[1] / "data_samples" / "demo"
 if Path(experiment).resolve() in (DEMO, DEMO / "experiment.toml"):
     assert {condition}, "known answer missed on the demo: " + {condition!r}
-""")
+""" + extra)
 
 
 def params(extra=""):
@@ -295,8 +296,10 @@ if corr is None:
     print("No correspondences: this notebook needs [stereo] correspondences (see 02).")
 else:
     views = exp.views()
-    refined = an.stereo(method="refined")  # the refined clicks: computed once, cached
-    sets = {"clicked": corr.pts, "refined": refined.pts[refined.kind == "click"]}
+    refined = an.optional("stereo", method="refined")  # computed once, cached; None if it failed
+    sets = {"clicked": corr.pts}
+    if refined is not None:
+        sets["refined"] = refined.pts[refined.kind == "click"]
     F = {}
     for name, p in sets.items():
         x0, x1 = p[:, 0], p[:, 1]
@@ -311,16 +314,17 @@ else:
                 axis, _ = epipolar.affine_tilt_axis(F[name, model])
                 line += f", tilt axis {axis[0]:.2f}° from x (90° = image y)"
             print(line)
-    x0, x1 = sets["refined"][:, 0], sets["refined"][:, 1]
-    Fa = F["refined", "affine"]
+    best = "refined" if "refined" in sets else "clicked"
+    x0, x1 = sets[best][:, 0], sets[best][:, 1]
+    Fa = F[best, "affine"]
     if Fa is not None:
-        print("affine F (refined points) =\\n", (Fa / np.abs(Fa).max()).round(5))
+        print(f"affine F ({best} points) =\\n", (Fa / np.abs(Fa).max()).round(5))
         print("epipoles (at infinity for affine views):", [e.round(4) for e in epipolar.epipoles(Fa)])
 '''),
     md("## Epipolar lines over both views (affine F)"),
     code('''
 if corr is not None and Fa is not None:
-    fig = plots.show_epipolar_lines(views[0], views[1], Fa, x0, x1, title=" (affine F, refined points)")
+    fig = plots.show_epipolar_lines(views[0], views[1], Fa, x0, x1, title=f" (affine F, {best} points)")
     plots.show_static(fig, fmt="jpeg")  # SEM images: JPEG keeps the report small
 '''),
     md("""
@@ -366,7 +370,8 @@ if exp.stereo is None:
     print("This experiment has no [stereo] table: no heights to compute.")
     res = None
 else:
-    res = an.stereo()
+    res = an.optional("stereo")  # None if the step failed (its error printed)
+if res is not None:
     print(f"{len(res.z_um)} points ({(res.kind == 'click').sum()} clicked, {(res.kind == 'auto').sum()} automatic), "
           f"method {res.method}")
     print(f"tilts {np.round(res.tilt_deg, 3)} deg from {res.tilt_source}; tilt axis {res.tilt_axis_deg:.2f}°")
@@ -401,19 +406,12 @@ if res is not None:
 '''),
     md("## Profile along the crack (points with a crack_id)"),
     code('''
-if res is not None and (res.crack_id >= 0).any():
-    on = res.crack_id >= 0
-    xy = res.xyz_um[on, :2]
-    # the crack direction: principal axis of its points
-    c = xy.mean(0)
-    d = np.linalg.svd(xy - c)[2][0]
-    t = (xy - c) @ d
-    p0, p1 = c + d * t.min(), c + d * t.max()
-    prof = surface.profile_along_line(res.xyz_um[:, :2], res.z_um, p0, p1, width_um=1.0)
+profiles = surface.crack_profiles(res.xyz_um, res.z_um, res.crack_id, width_um=1.0) if res is not None else []
+for cid, prof in profiles:
     ax = plots.plot_point_profile(prof["distance_um"], prof["z_um"], res.z_err_um[prof["index"]],
-                                  title="heights within 0.5 µm of the crack line")
-else:
-    print("No crack points (crack_id) in the correspondences.")
+                                  title=f"crack {cid}: heights within 0.5 µm of its line")
+if not profiles:
+    print("No crack (crack_id) with two or more matched points in the correspondences.")
 '''),
     md("## Trend of z with x and y (the paper saw more extrusion at high y; does this sample?)"),
     code('''
@@ -423,8 +421,9 @@ if res is not None:
 '''),
     md("## The reference method: raw clicks (no refinement) through the same geometry"),
     code('''
-if res is not None and exp.correspondences() is not None:
-    raw = an.stereo(method="raw")
+raw = (an.optional("stereo", method="raw")
+       if res is not None and exp.correspondences() is not None else None)
+if raw is not None:
     print(f"raw clicks: {len(raw.z_um)} points, median 1σ {np.median(raw.z_err_um) * 1000:.0f} nm "
           f"(a 0.5 px click error is ~{0.5 * 2 ** 0.5 * exp.pixel_size_um / np.sin(np.deg2rad(np.ptp(raw.tilt_deg))) * 1000:.0f} nm of height)")
 '''),
@@ -447,7 +446,8 @@ hm = None
 if res is not None and not an.config.heightmap:
     print("The dense height map is switched off for this run (config heightmap = false).")
 elif res is not None:
-    hm, bands = an.heightmap()  # computed once by the analysis, which wrote the files
+    hm, bands = an.optional("heightmap") or (None, None)  # computed once by the analysis
+if hm is not None:
     print(f"measured {100 * hm.valid.mean():.1f} % of view 0; median 1σ {np.nanmedian(hm.sigma_um) * 1e3:.1f} nm "
           f"(σ scale {hm.parallax.sigma_scale:.2f} from the map itself)")
     for n in hm.notes:
@@ -497,8 +497,13 @@ if res is not None and exp.truth_dir is not None:
     print(f"{e['n']} points: height RMSE {rmse_nm:.1f} nm, {100 * within_1sigma:.0f} % / "
           f"{100 * within_2sigma:.0f} % within 1σ / 2σ")
 # (the points' bars are conservative since stage 9 weighs the map by its noise-plus-bias σ
-# and keeps its posterior σ for the bar: README, "Error bars")
-''', "e['n'] >= 500 and rmse_nm < 15 and 0.55 <= within_1sigma <= 0.97 and within_2sigma >= 0.93"),
+# and keeps its posterior σ, and the subset's model error, for the bar: README, "Error bars";
+# the demo's points were 96.99 % / 99.6 % within 1σ / 2σ on 2026-12-07, conservative on its
+# flats by design since the wall term: the upper bound catches bars grown past that)
+''', "e['n'] >= 500 and rmse_nm < 15 and 0.55 <= within_1sigma <= 0.99 and within_2sigma >= 0.95",
+        extra="""    # its slip bands stand ~0.1 µm above a flat surface: the tilt check must not call it flat
+    assert res.calibration["tilt_check"].get("relief_detected", True), "known answer missed on the demo: its bands are relief, not a flat surface"
+"""),
     check_demo('''
 if hm is not None and exp.truth_dir is not None:
     d = validation.heightmap_errors(hm.z_um, hm.sigma_um, hm.valid, exp.truth_dir, roi=hm.roi)
@@ -516,7 +521,8 @@ if exp.series is None:
     print("This experiment has no [series] table: nothing to track.")
     tr = None
 else:
-    tr = an.tracking()
+    tr = an.optional("tracking")  # None if the step failed (its error printed, and named by semlab run)
+if tr is not None:
     t = tr.tracks
     print(f"{t.n_tracks} tracks ({(tr.seed == 'corner').sum()} corner-seeded, "
           f"{(tr.seed == 'grid').sum()} on the grid, "
@@ -636,21 +642,25 @@ flat when polished). Reference: the earliest frame with enough valid tracks.
     code(TRACK_SETUP + '''
 S = {}
 if tr is not None:
-    try:
-        S = an.strain()
-    except semlab.StepFailed as exc:  # said once, as the error of the strain step
-        print(exc)
+    S = an.optional("strain") or {}  # said once, as the error of the strain step
 if S:
     print(f"reference frame {S['ref_frame']}, gauge length {S['gauge_length_um']:.2f} µm")
-    print("mean dense E (xx, yy, xy):", np.round([np.nanmean(S["E"][..., 0, 0]), np.nanmean(S["E"][..., 1, 1]),
-                                                    np.nanmean(S["E"][..., 0, 1])], 5))
+    measured = np.isfinite(S["E"][..., 0, 0])
+    print(f"{np.isfinite(S['ux_um']).sum()} of {measured.size} grid subsets matched; "
+          f"{int(S['dense_filled'].sum())} points without a match (mostly on the bands) "
+          "interpolated from their neighbours before the strain window's fits")
+    print(f"mean dense E (xx, yy, xy) over the {measured.sum()} of {measured.size} grid points "
+          "with a strain window:",
+          np.round([np.nanmean(S["E"][..., 0, 0]), np.nanmean(S["E"][..., 1, 1]),
+                    np.nanmean(S["E"][..., 0, 1])], 5))
 '''),
     md("## Dense strain maps (Green–Lagrange, dimensionless) and principal directions"),
     code('''
 if S:
     maps = {"E_xx": S["E"][..., 0, 0], "E_yy": S["E"][..., 1, 1], "E_xy": S["E"][..., 0, 1],
             "max shear": S["max_shear"]}
-    fig = plots.strain_maps(S["grid_x_px"], S["grid_y_px"], maps, exp.pixel_size_um)
+    fig = plots.strain_maps(S["grid_x_px"], S["grid_y_px"], maps, exp.pixel_size_um,
+                            interpolated=S["dense_filled"])
     ax = plots.principal_directions(S["grid_x_px"], S["grid_y_px"], S["e1"], S["angle_deg"],
                                     exp.pixel_size_um)
 '''),
@@ -707,17 +717,20 @@ if truth is None:
 rows = {}
 if truth is not None and exp.stereo is not None:
     for m in (["raw", "refined"] if exp.correspondences() is not None else []) + ["auto"]:
-        r = an.stereo(method=m)
+        r = an.optional("stereo", method=m)
+        if r is None:
+            continue
         zt = validation.true_height_at(truth, r.pts[:, 0])
         e = validation.height_errors(r.z_um, zt, r.xyz_um[:, :2])
         rows[m] = (r, e)
         print(f"{m:>8}: {e['n']:5d} points, RMSE {e['rmse_um'] * 1000:6.1f} nm, p95 {e['p95_um'] * 1000:6.1f} nm")
-    ax = plots.error_histograms({m: e["err_um"] for m, (r, e) in rows.items()})
+    if rows:
+        ax = plots.error_histograms({m: e["err_um"] for m, (r, e) in rows.items()})
 '''),
     md("## Tracking"),
     code('''
-if truth is not None and exp.series is not None:
-    tr = an.tracking()
+tr = an.optional("tracking") if truth is not None and exp.series is not None else None
+if tr is not None:
     t = tr.tracks
     true = validation.true_track_positions(truth, t.xy[-1])
     err = np.hypot(*(t.xy - true).transpose(2, 0, 1))
