@@ -803,8 +803,10 @@ def heightmap_from_stereo(exp, stereo, params=None, progress=False, roi=None, ti
     pair = rows_in_views(stereo.pts, 0, 1)
     try:
         model = height_model_from_points(stereo.pts[pair, :2], stereo.z_um[pair])
-        notes.append(f"height model fitted to {pair.sum()} points, residual "
-                     f"{model.rms_um * 1e3:.2g} nm")
+        rms_nm = model.rms_um * 1e3
+        fit = (f"residual {rms_nm:.2g} nm" if rms_nm >= 1e-3 else
+               "exact (residual below 0.001 nm: two views' heights are linear in the parallax)")
+        notes.append(f"height model fitted to {pair.sum()} points, {fit}")
     except GeometryError:
         # too few points to fit: the tilts' closed form, above the plane z = 0 of the
         # camera model rather than the points' reference plane

@@ -275,7 +275,9 @@ def test_sigma_is_honest_with_the_calibrated_noise():
 
 def test_heightmap_from_stereo_uses_the_matchers_noise():
     """One noise estimate per run: the map's noise is the one the stereo step recorded, else
-    the matcher's calibrated measurement at the stereo matches (not Immerkær's again)."""
+    the matcher's calibrated measurement at the stereo matches (not Immerkær's again). The
+    height model's note says an exact fit (two views' heights are linear in the parallax) in
+    words, not as a residual of 1e-11 nm."""
     from types import SimpleNamespace
 
     from semlab.noise import calibrated_noise_sigma
@@ -295,14 +297,19 @@ def test_heightmap_from_stereo_uses_the_matchers_noise():
     assert tuple(res.parallax.calibration["noise_sigma"]) == want
     np.testing.assert_allclose(want, 0.05, rtol=0.15)
     assert any("calibrated on the 96 stereo matches" in n for n in res.notes)
+    assert any(n.startswith("height model fitted to 96 points, exact") for n in res.notes)
     # recorded by the stereo step: taken as it is, by both dense methods
     from semlab.variational import VariationalParams
 
     stereo.calibration = {"noise_sigma": [0.07, 0.08, 0.09]}
+    # heights not linear in the views-0/1 parallax (as with 3+ views): the residual is given
+    stereo.z_um = stereo.z_um + 0.002 * np.sin(p0[:, 1] / 7.0)
     for params in (None, VariationalParams()):
         res = hm.heightmap_from_stereo(exp, stereo, roi=roi, params=params)
         np.testing.assert_allclose(res.parallax.calibration["noise_sigma"], (0.07, 0.08))
         assert any("recorded by the stereo step" in n for n in res.notes)
+        fit = [n for n in res.notes if n.startswith("height model fitted to 96 points")]
+        assert len(fit) == 1 and " nm" in fit[0] and "exact" not in fit[0], fit
 
 
 def test_heightmap_keeps_its_parallax_in_float32():
