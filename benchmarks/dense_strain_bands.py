@@ -33,10 +33,10 @@ from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
 
 from semlab import analysis, experiment, realtex, synth, validation
+from semlab.strain import DENSE_WINDOW, dense_field_strain, strain_from_tracks
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_matrix as am  # noqa: E402
-from semlab.strain import DENSE_WINDOW, dense_field_strain, strain_from_tracks
 
 HERE = Path(__file__).resolve().parent
 SCENES = ("demo", "polished@1", "speckle@2", "real:fei@0")
@@ -122,6 +122,13 @@ def score(E, truth):
     return int(np.isfinite(E[..., 0, 0]).sum()), rows
 
 
+def row(spec, ref_frame, name, counts, rows):
+    """One line of the table."""
+    return (f"| {spec} | {ref_frame} | {name} | {counts} | "
+            + " | ".join(f"{a:+.4f} ({b:+.4f}, {g:+.4f}), {c:.4f}" for a, b, g, c in rows)
+            + " |")
+
+
 VARIANTS = (("subsets 21/15/11 px, holes filled (default)", (10, 7, 5), True),
             ("subsets 21/15/11 px, holes left", (10, 7, 5), False),
             ("subsets 21 px, holes filled", (10,), True),
@@ -150,18 +157,14 @@ def main(argv=None):
                 S = strain_from_tracks(frames, tracks.xy, tracks.valid, exp.pixel_size_um,
                                        S0["ref_frame"], dense_half_windows=halves,
                                        dense_fill=fill)
-                n, rows = score(S["E"], truth)
+                _, rows = score(S["E"], truth)
                 matched = int(np.isfinite(S["ux_um"]).sum())
-                print(f"| {spec} | {S0['ref_frame']} | {name} | {matched} of {S['ux_um'].size} "
-                      f"({int(S['dense_filled'].sum())}) | "
-                      + " | ".join(f"{a:+.4f} ({b:+.4f}, {g:+.4f}), {c:.4f}" for a, b, g, c in rows)
-                      + " |", flush=True)
+                print(row(spec, S0["ref_frame"], name, f"{matched} of {S['ux_um'].size} "
+                          f"({int(S['dense_filled'].sum())})", rows), flush=True)
             for name, E in reference_strain(frames, S0, exp.pixel_size_um).items():
                 n, rows = score(E, truth)
-                print(f"| {spec} | {S0['ref_frame']} | OpenCV {name} (same grid and fits) | "
-                      f"{n} of {S0['ux_um'].size} (0) | "
-                      + " | ".join(f"{a:+.4f} ({b:+.4f}, {g:+.4f}), {c:.4f}" for a, b, g, c in rows)
-                      + " |", flush=True)
+                print(row(spec, S0["ref_frame"], f"OpenCV {name} (same grid and fits)",
+                          f"{n} of {S0['ux_um'].size} (0)", rows), flush=True)
         print(f"<!-- {spec}: {time.perf_counter() - t:.0f} s -->", flush=True)
 
 

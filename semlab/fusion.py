@@ -19,9 +19,9 @@ the points"). There the map's σ is scaled where its errors are larger than it s
 :func:`agreement_scale` (how the two disagree around each point); the weight uses the map's
 noise-plus-bias σ and the average's 1σ its posterior σ (:func:`inverse_variance`'s
 ``weight_sigma_b``), with the subset's model error kept in full (``shared_sigma``: the map
-rounds a slip band's wall as the subset does). With a third view, :func:`held_out_error` (how well the average and the
-subset match each predict that view, their shared noise counted) decides whether the map
-enters at all.
+rounds a slip band's wall as the subset does). With a third view, :func:`held_out_error`
+(how well the average and the subset match each predict that view, their shared noise
+counted) decides whether the map enters at all.
 """
 
 from __future__ import annotations
@@ -132,8 +132,8 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None, shared_sigma=N
         ``w a + (1 − w) b``, ``w = σ_b² / (σ_a² + σ_b²)``; ``a`` where ``b`` or either σ
         is not finite (or a σ is not positive), ``b`` where only ``b`` is.
     sigma : (N,) array
-        ``sqrt(w² σ_a² + (1 − w)² σ_b²)``: the 1σ of the average when the two errors are
-        uncorrelated, which the two estimates from the same pixels are not in general. At the
+        ``sqrt(w² σ_a² + (1 − w)² σ_b²)`` (with ``shared_sigma``, as given there): the 1σ of
+        the average when the two errors are uncorrelated, which the two estimates from the same pixels are not in general. At the
         points of :func:`semlab.matching.auto_match` (stage 9: ``weight_sigma_b`` the map's
         noise-plus-bias σ, ``sigma_b`` its posterior σ, ``shared_sigma`` the subset's model
         error) it is conservative: 83–99 % of the errors within 1σ, 98–100 % within 2σ on 21
@@ -153,6 +153,10 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None, shared_sigma=N
         raise SemlabError(f"inverse_variance: estimates of shapes {a.shape} and {b.shape} with "
                           f"{len(sa)}, {len(sb)} and {len(sw)} σ; give one σ per row of "
                           "equal-shaped estimates")
+    sh = None if shared_sigma is None else np.asarray(shared_sigma, float).ravel()
+    if sh is not None and len(sh) != len(a):
+        raise SemlabError(f"inverse_variance: {len(sh)} shared σ for {len(a)} rows; give one "
+                          "per row")
     rows = lambda m: m.reshape(len(m), -1).all(axis=1)  # noqa: E731
     with np.errstate(invalid="ignore"):
         ok_a = rows(np.isfinite(a)) & np.isfinite(sa) & (sa > 0)
@@ -173,10 +177,7 @@ def inverse_variance(a, sigma_a, b, sigma_b, weight_sigma_b=None, shared_sigma=N
             s_both = np.hypot((1.0 - wb) * sa1, wb * sb1)
     w = wb.reshape((-1,) + (1,) * (a.ndim - 1))
     fused = np.where(w > 0, w * np.nan_to_num(b) + (1 - w) * np.where(w < 1, a, 0.0), a)
-    if shared_sigma is not None:
-        sh = np.asarray(shared_sigma, float).ravel()
-        if len(sh) != len(a):
-            raise SemlabError(f"inverse_variance: {len(sh)} shared σ for {len(a)} rows")
+    if sh is not None:
         sh2 = np.minimum(np.where(np.isfinite(sh), sh, 0.0) ** 2, sa1 ** 2)
         # w² σa² − w² σs² + σs² (w the subset's weight): the shared part kept in full
         s_both = np.sqrt(s_both ** 2 + (1.0 - (1.0 - wb) ** 2) * sh2)

@@ -805,8 +805,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     converged subset enters, or with ``dense_min_zncc`` only those with at least that ZNCC;
     with ``dense_fill`` the points left without a match are interpolated from their
     neighbours, :func:`fill_dense_holes`; the gradient is the plane fit over ``dense_window``
-    × ``dense_window`` grid points, a gauge of ``dense_window × grid_step_px``); with ``U(x)`` the displacement as a function of end-state position,
-    ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
+    × ``dense_window`` grid points, a gauge of ``dense_window × grid_step_px``); with ``U(x)``
+    the displacement as a function of end-state position, ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
     (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
     out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
     polished surface) is added.
