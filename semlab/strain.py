@@ -658,6 +658,12 @@ DENSE_WINDOW = 7
 #: the step does (the points left unmatched at a band took part of its step out of the plane
 #: fits; ``benchmarks/dense_strain_bands.py``). The first sets the grid's margin.
 DENSE_HALF_WINDOWS = (10, 7, 5)
+#: Largest frame (pixels) whose dense strain is the variational displacement map
+#: (``dense_method="variational"``: one solve over the whole frame, not tiled; a 1024² pair
+#: peaked at 1.8 GB of RSS and took 92 s on the 2-core machine, 2026-12-07, so about 1.7 kB
+#: per pixel: 1.5 Mpx stays under the 3 GB target); larger frames take the grid of subsets
+#: (tiled, :mod:`semlab.parallel`), and ``dense_method`` in the results says which.
+DENSE_FLOW_MAX_PX = 1_500_000
 
 
 def fill_dense_holes(ux, uy, window=DENSE_WINDOW, min_points=6):
@@ -789,24 +795,58 @@ def _dense_match(last_img, ref_img, grid, guess, half_windows, smooth_sigma_px, 
     return pts, half > 0, zncc, half
 
 
+def _dense_flow(last_img, ref_img, p_end, back, grid, params, progress):
+    """The variational displacement map (:func:`semlab.flow.variational_flow`) from the last
+    frame into the reference frame, started at the tracks' displacements interpolated to
+    every pixel (linearly, nearest value outside their hull), sampled at the grid points.
+    Returns (positions in the reference frame, inside, the map's info)."""
+    from scipy.interpolate import griddata
+
+    from .flow import variational_flow
+
+    h, w = last_img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    pix = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+    start = []
+    for k in (0, 1):
+        lin = griddata(p_end, back[:, k], pix, method="linear")
+        near = griddata(p_end, back[:, k], pix, method="nearest")
+        start.append(np.where(np.isfinite(lin), lin, near).reshape(h, w))
+    u, v, info = variational_flow(last_img, ref_img, *start, params=params, progress=progress)
+    c = np.round(grid).astype(int)
+    pts = grid + np.column_stack([u[c[:, 1], c[:, 0]], v[c[:, 1], c[:, 0]]])
+    inside = ((pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0)
+              & (pts[:, 1] <= h - 1))
+    return pts, inside, info
+
+
 def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length_px=None,
                        grid_step_px=16, heights=None, progress=False,
                        dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC,
                        dense_smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, sigma_px=None,
-                       dense_half_windows=DENSE_HALF_WINDOWS, dense_fill=True):
+                       dense_half_windows=DENSE_HALF_WINDOWS, dense_fill=True,
+                       dense_method="variational", dense_flow_params=None):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
 
     Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
     length ``gauge_length_px`` on the tracks valid in both frames (None: the diameter of a
-    disc that holds about 12 tracks at their mean density). Dense: a grid of subsets in
-    the last frame matched into ``ref_frame`` by IC-GN (initial guess interpolated from the
-    tracks; each point's subset the largest of ``dense_half_windows`` that converges, so a
-    point beside a slip band's step is matched by a subset that does not straddle it; every
-    converged subset enters, or with ``dense_min_zncc`` only those with at least that ZNCC;
-    with ``dense_fill`` the points left without a match are interpolated from their
-    neighbours, :func:`fill_dense_holes`; the gradient is the plane fit over ``dense_window``
-    × ``dense_window`` grid points, a gauge of ``dense_window × grid_step_px``); with ``U(x)``
-    the displacement as a function of end-state position, ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain ``E = ½(FᵀF − I)``. With ``heights``
+    disc that holds about 12 tracks at their mean density). Dense: the displacement from the
+    last frame into ``ref_frame`` on a grid of the last frame (every ``grid_step_px``), by
+    ``dense_method``: ``"variational"`` (default) the variational displacement map of
+    :func:`semlab.flow.variational_flow` (``dense_flow_params``), started at the tracks'
+    displacements interpolated to every pixel and sampled at the grid points (frames above
+    :data:`DENSE_FLOW_MAX_PX` pixels take the subsets); ``"subsets"`` a grid of subsets
+    matched by IC-GN (initial guess interpolated from the tracks; each point's subset the
+    largest of ``dense_half_windows`` that converges, so a point beside a slip band's step is
+    matched by a subset that does not straddle it; every converged subset enters, or with
+    ``dense_min_zncc`` only those with at least that ZNCC; with ``dense_fill`` the points left
+    without a match are interpolated from their neighbours, :func:`fill_dense_holes`). On
+    four series with slip bands the map's strain is 1.4–2.8× more accurate than the
+    subsets' on every component (``benchmarks/results/dense_strain_bands.md``). The gradient
+    is the plane fit over ``dense_window`` × ``dense_window`` grid points, a gauge of
+    ``dense_window × grid_step_px``; with ``U(x)`` the displacement as a function of
+    end-state position, ``F = (I − ∂U/∂x)⁻¹`` and the Green–Lagrange strain
+    ``E = ½(FᵀF − I)``. With ``heights``
     (a callable z_um(x_px, y_px) in last-frame pixels), the surface strain including the
     out-of-plane gradient (heights taken as the out-of-plane displacement of an initially flat,
     polished surface) is added.
@@ -826,7 +866,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     not in ``E_lsq_sigma``; the fit itself stays unweighted (``E_lsq`` is the same with or
     without ``sigma_px``, except that tracks with an infinite σ are left out). ``E_tri_sigma``
     is the same for each triangle, exact to the gradient (:func:`triangle_gradient_cov`)
-    and first order to the strain. The dense ``E`` has no σ: the dense grid's subsets overlap (21 px subsets every
+    and first order to the strain. The dense ``E`` has no σ: the map's points share their
+    neighbours' data through its prior, and the subsets overlap (21 px subsets every
     ``grid_step_px``), so their errors are correlated and the independent-points propagation
     does not hold. On the uniform-strain benchmark (``benchmarks/strain_accuracy.py``,
     ``benchmarks/results/strain_sigma.md``) the σ holds with sized subsets (RMS error/σ
@@ -838,6 +879,10 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     sigma_px : (F, N) array, optional
         Predicted 1σ of each track's position in each frame relative to the last frame,
         pixels (``Tracks.sigma_px``). None: ``E_lsq_sigma`` is NaN.
+    dense_method : {"variational", "subsets"}
+        The dense displacement (above).
+    dense_flow_params : semlab.flow.FlowParams, optional
+        Parameters of the variational map (default ``FlowParams()``).
 
     Returns
     -------
@@ -846,10 +891,13 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     ``(E_xx, E_yy, E_xy)`` (dimensionless, NaN where ``E_lsq`` is or without ``sigma_px``),
     ``tri`` (T, 3), ``E_tri`` (T, 2, 2), ``E_tri_sigma`` (T, 3) likewise; dense ``grid_x_px``,
     ``grid_y_px`` (1D), ``ux_um``, ``uy_um``, ``E`` (H, W, 2, 2), ``e1``, ``e2``, ``angle_deg``,
-    ``max_shear``, ``zncc``, ``dense_gauge_um``, ``dense_filled`` (H, W) bool, where the
-    displacement entering the strain was interpolated (``ux_um``/``uy_um`` are NaN there),
-    ``dense_half_px`` (H, W) int, each point's subset half size (0: none converged; its
-    spatial resolution is ``2 h + 1`` pixels), and ``E_surface`` when heights are given.
+    ``max_shear``, ``zncc`` (the subsets'; NaN with the map), ``dense_gauge_um``,
+    ``dense_filled`` (H, W) bool, where the displacement entering the strain was interpolated
+    (``ux_um``/``uy_um`` are NaN there; none with the map), ``dense_half_px`` (H, W) int, each
+    point's subset half size (0: none converged, or the map; its spatial resolution is
+    ``2 h + 1`` pixels), ``dense_method`` (``"variational"`` or ``"subsets"``, the one used),
+    ``dense_prior_scale_px`` (the map's prior scale, with the map), and ``E_surface`` when
+    heights are given.
 
     Examples
     --------
@@ -924,9 +972,23 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     guess = np.column_stack([griddata(p_end, back[:, k], grid, method="linear") for k in (0, 1)])
     near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
     guess = np.where(np.isfinite(guess), guess, near)
-    # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
-    pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid, guess,
-                                         dense_half_windows, dense_smooth_sigma_px, progress)
+    if dense_method not in ("variational", "subsets"):
+        raise SemlabError(f"dense_method must be 'variational' or 'subsets', got "
+                          f"{dense_method!r}")
+    method = dense_method
+    if method == "variational" and h * w > DENSE_FLOW_MAX_PX:
+        method = "subsets"      # one whole-frame solve: its memory grows with the pixels
+    if method == "variational":
+        pts, conv, finfo = _dense_flow(frames[-1], frames[ref_frame], p_end, back, grid,
+                                       dense_flow_params, progress)
+        zncc, used = np.full(len(grid), np.nan), np.zeros(len(grid), int)
+        out["dense_prior_scale_px"] = finfo["prior_scale_px"]
+    else:
+        # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
+        pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid, guess,
+                                             dense_half_windows, dense_smooth_sigma_px,
+                                             progress)
+    out["dense_method"] = method
     u = (grid - pts) * s  # U(x) = x_end - X_ref, µm
     u[~conv] = np.nan
     ux = u[:, 0].reshape(GX.shape)
