@@ -63,3 +63,7 @@ def test_errors():
         variational_flow(f0, f0, zn, z)
     with pytest.raises(SemlabError, match="warps and irls"):
         variational_flow(f0, f0, z, z, params=FlowParams(warps=0))
+    with pytest.raises(SemlabError, match="sample_at"):
+        variational_flow(f0, f0, z, z, n_samples=4)
+    with pytest.raises(SemlabError, match="sample_at"):
+        variational_flow(f0, f0, z, z, n_samples=4, sample_at=[[40, 3]])

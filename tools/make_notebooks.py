@@ -652,6 +652,8 @@ if S:
         print(f"dense displacement: variational map (prior scale "
               f"{float(S['dense_prior_scale_px']):.3f} px), {np.isfinite(S['ux_um']).sum()} of "
               f"{measured.size} grid points inside the reference frame")
+        print("median 1σ of the dense E (xx, yy, xy):",
+              np.round(np.nanmedian(S["E_sigma"], axis=(0, 1)), 5))
     else:
         print(f"{np.isfinite(S['ux_um']).sum()} of {measured.size} grid subsets matched; "
               f"{int(S['dense_filled'].sum())} points without a match (mostly on the bands) "
