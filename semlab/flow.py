@@ -39,10 +39,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from .errors import ImageError, SemlabError
+from .errors import SemlabError
 from .stats import robust_sd
-from .variational import (_diff, _diff_matrix, _diff_t, _grad_x, _grad_y, _huber_w,
-                          normalise_local)
+from .variational import (_check_image_pair, _diff, _diff_matrix, _diff_t, _grad_x, _grad_y,
+                          _huber_w, normalise_local)
 
 __all__ = ["FlowParams", "variational_flow"]
 
@@ -91,16 +91,7 @@ class FlowParams:
 
 
 def _check(img0, img1, u0, v0, prm):
-    a, b = np.asarray(img0), np.asarray(img1)
-    for name, im in (("img0", a), ("img1", b)):
-        if im.ndim != 2 or min(im.shape) < 16:
-            raise ImageError(f"{name} must be a 2D image of at least 16×16 pixels, got shape "
-                             f"{im.shape}")
-        if not np.all(np.isfinite(im)):
-            raise ImageError(f"{name} holds NaN/inf pixels: replace them before the "
-                             "displacement map")
-    if a.shape != b.shape:
-        raise ImageError(f"img0 and img1 must have one shape, got {a.shape} and {b.shape}")
+    a, b = _check_image_pair(img0, img1, ("img0", "img1"), 16, "the displacement map")
     u, v = np.asarray(u0, float), np.asarray(v0, float)
     if u.shape != a.shape or v.shape != a.shape:
         raise SemlabError(f"u0 and v0 must be (H, W) = {a.shape} initial displacements, got "

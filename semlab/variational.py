@@ -605,18 +605,24 @@ def _fill(p, ok):
     return p[iy, ix]
 
 
-def _check_inputs(view0, view1, parallax0, valid0):
-    a = np.asarray(view0)
-    b = np.asarray(view1)
-    for name, v in (("view0", a), ("view1", b)):
-        if v.ndim != 2 or min(v.shape) < 8:
-            raise ImageError(f"{name} must be a 2D image of at least 8×8 pixels, got shape "
-                             f"{v.shape}")
+def _check_image_pair(img0, img1, names, min_px, purpose):
+    """The two images as arrays, each 2-D of at least ``min_px`` pixels a side and finite,
+    of one shape (an :class:`ImageError` naming ``names`` and ``purpose`` otherwise)."""
+    a, b = np.asarray(img0), np.asarray(img1)
+    for name, v in zip(names, (a, b)):
+        if v.ndim != 2 or min(v.shape) < min_px:
+            raise ImageError(f"{name} must be a 2D image of at least {min_px}×{min_px} pixels, "
+                             f"got shape {v.shape}")
         if not np.all(np.isfinite(v)):
-            raise ImageError(f"{name} holds NaN/inf pixels: replace them before refining the "
-                             "parallax")
+            raise ImageError(f"{name} holds NaN/inf pixels: replace them before {purpose}")
     if a.shape != b.shape:
-        raise ImageError(f"view0 and view1 must have one shape, got {a.shape} and {b.shape}")
+        raise ImageError(f"{names[0]} and {names[1]} must have one shape, got {a.shape} and "
+                         f"{b.shape}")
+    return a, b
+
+
+def _check_inputs(view0, view1, parallax0, valid0):
+    a, b = _check_image_pair(view0, view1, ("view0", "view1"), 8, "refining the parallax")
     p = np.asarray(parallax0, float)
     if p.shape[:2] != a.shape or p.ndim not in (2, 3) or (p.ndim == 3 and p.shape[2] != 2):
         raise SemlabError(f"parallax0 must be the (H, W) = {a.shape} x-parallax x1 - x0 of every "
