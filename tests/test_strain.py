@@ -557,3 +557,18 @@ def test_dense_strain_sigma_holds_at_a_noisy_step():
         for c, (i, j) in enumerate(((0, 0), (1, 1), (0, 1))):
             z = np.abs(S["E"][..., i, j] - Et[..., i, j]) / S["E_sigma"][..., c]
             assert np.isfinite(z).all() and (z < 2).mean() >= 0.9, (seed, c, (z < 2).mean())
+
+
+def test_frames_above_the_map_limit_take_the_subsets(monkeypatch):
+    """The variational map is one whole-frame solve: frames with more pixels than
+    DENSE_FLOW_MAX_PX take the (tiled) subset grid, and the results say so."""
+    import semlab.strain as st
+
+    f0, f1, _, _, xy, valid, _ = _slip_step_series(1.5, 80.0, 1.5)
+    kw = dict(pixel_size_um=0.03, ref_frame=0, gauge_length_px=30.0)
+    monkeypatch.setattr(st, "DENSE_FLOW_MAX_PX", f0.size - 1)
+    S = strain_from_tracks([f0, f1], xy, valid, **kw)
+    assert S["dense_method"] == "subsets" and "E_sigma" not in S
+    assert np.isfinite(S["zncc"]).any()
+    monkeypatch.setattr(st, "DENSE_FLOW_MAX_PX", f0.size)
+    assert strain_from_tracks([f0, f1], xy, valid, **kw)["dense_method"] == "variational"
