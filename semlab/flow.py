@@ -123,6 +123,25 @@ def _solver(A, prm):
     return solve
 
 
+def _noise_floor(img):
+    """The smallest white-noise σ the data term takes for ``img``: the quantisation noise of
+    integer grey levels (``1/√12`` of a level), or ``1e-3`` of its standard deviation for
+    other values. A rendered frame can measure zero noise (the DIC Challenge rotation set:
+    82 % black background), and a zero σ would give its pixels infinite weight."""
+    a = np.asarray(img, float)
+    if np.all(a == np.round(a)):
+        return 1.0 / np.sqrt(12.0)
+    return 1e-3 * float(np.std(a)) or 1e-12
+
+
+def _level_noise(img, given, floor):
+    """The noise σ of one pyramid level: ``given`` or measured, at least ``floor``."""
+    from .noise import image_noise_sigma
+
+    sigma = image_noise_sigma(img) if given is None else float(given)
+    return max(float(sigma), floor)
+
+
 class _Level:
     """One pyramid level: the normalised frames, their gradients and ``img1``'s splines."""
 
@@ -247,9 +266,10 @@ def variational_flow(img0, img1, u0, v0, params=None, noise_sigma=None, progress
         interpolated from tracks. Finite everywhere.
     params : FlowParams, optional
     noise_sigma : (2,) floats, optional
-        White-noise σ of the two frames, grey units; default measured
-        (:func:`semlab.noise.image_noise_sigma`; the data term is rescaled to the residuals
-        actually left in any case).
+        White-noise σ of the two frames, grey units; default measured on each pyramid level
+        (:func:`semlab.noise.image_noise_sigma`). Either way at least the quantisation noise
+        of integer grey levels (:func:`_noise_floor`); the data term is rescaled to the
+        residuals actually left in any case.
     progress : bool
         Show a progress bar over the levels.
     n_samples : int
@@ -315,11 +335,16 @@ def variational_flow(img0, img1, u0, v0, params=None, noise_sigma=None, progress
     u = resize(u, p0[-1].shape, order=1, anti_aliasing=levels > 0) / f
     v = resize(v, p0[-1].shape, order=1, anti_aliasing=levels > 0) / f
     s = k = np.nan
+    floor = (_noise_floor(a), _noise_floor(b))
     for lvl in tqdm(range(levels, -1, -1), desc="displacement map", disable=not progress):
         if lvl < levels:
             u = resize(u, p0[lvl].shape, order=1) * 2.0
             v = resize(v, p0[lvl].shape, order=1) * 2.0
-        lv = _Level(p0[lvl], p1[lvl], prm, noise)
+        # each level's own noise (the reduction averages it down), floored: the floor of the
+        # full frame scaled as the reduction scales white noise (about 2× per halving)
+        lv = _Level(p0[lvl], p1[lvl], prm,
+                    [_level_noise(im[lvl], noise[i], floor[i] / 2 ** lvl)
+                     for i, im in enumerate((p0, p1))])
         u, v, s, k = _refine(lv, u, v, prm)
     info = {"prior_scale_px": float(s), "noise_factor": float(k), "levels": levels,
             "params": prm.as_dict()}

@@ -660,8 +660,9 @@ DENSE_WINDOW = 7
 DENSE_HALF_WINDOWS = (10, 7, 5)
 #: Largest frame (pixels) whose dense strain is the variational displacement map
 #: (``dense_method="variational"``: one solve over the whole frame, not tiled; a 1024² pair
-#: peaked at 1.8 GB of RSS and took 92 s on the 2-core machine, 2026-12-07, so about 1.7 kB
-#: per pixel: 1.5 Mpx stays under the 3 GB target); larger frames take the grid of subsets
+#: peaked at 1.8 GB of RSS and took 92 s on the 2-core machine, 2026-12-07, before the 17
+#: solves of the 1σ's draws were added, so about 1.7 kB per pixel: 1.5 Mpx stays under the
+#: 3 GB target); larger frames take the grid of subsets
 #: (tiled, :mod:`semlab.parallel`), and ``dense_method`` in the results says which.
 DENSE_FLOW_MAX_PX = 1_500_000
 #: Posterior draws of the variational map for the dense strain's 1σ (``E_sigma``).
@@ -894,7 +895,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     of the grid points within 2σ of a perfect tracker's strain on four series with slip bands,
     fewer on E_yy and E_xy of the bands (short there); on a uniform strain with 30 % noise
     1.7–2.7× the empirical scatter (conservative where the field is smooth). The subsets'
-    ``E`` has no σ (overlapping subsets, correlated errors). On the uniform-strain benchmark (``benchmarks/strain_accuracy.py``,
+    ``E`` has no σ (overlapping subsets, correlated errors). The sparse ``E_lsq_sigma``: on
+    the uniform-strain benchmark (``benchmarks/strain_accuracy.py``,
     ``benchmarks/results/strain_sigma.md``) the σ holds with sized subsets (RMS error/σ
     0.93–1.31) and is up to 2.3× too small with LK or fixed subsets, whose ``sigma_px`` is
     itself 1.1–1.8× too small.

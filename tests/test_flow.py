@@ -67,3 +67,23 @@ def test_errors():
         variational_flow(f0, f0, z, z, n_samples=4)
     with pytest.raises(SemlabError, match="sample_at"):
         variational_flow(f0, f0, z, z, n_samples=4, sample_at=[[40, 3]])
+
+
+def test_a_noise_free_rendered_pair_with_a_black_background():
+    """Integer frames that measure zero noise, a textured patch on a black background (as
+    the DIC Challenge rotation set, 82 % black): the data term's σ is floored at the grey
+    levels' quantisation noise instead of giving the pixels infinite weight (the solve broke
+    down with NaN before), and the patch's 2 px shift is found."""
+    from semlab.flow import _noise_floor
+    from semlab.noise import image_noise_sigma
+
+    f0, _ = _texture(160, seed=3)
+    a = np.zeros((160, 160))
+    a[40:120, 40:120] = np.round(100 + 400 * f0[40:120, 40:120])
+    b = np.roll(a, 2, axis=1)                 # b(x) = a(x − 2): a's pixel x is at x + 2
+    assert image_noise_sigma(a) == 0.0
+    assert _noise_floor(a) == pytest.approx(1 / np.sqrt(12)) and _noise_floor(a + 0.5) < 0.1
+    u, v, _ = variational_flow(a, b, np.zeros(a.shape), np.zeros(a.shape))
+    assert np.isfinite(u).all() and np.isfinite(v).all()
+    patch = (slice(50, 110), slice(50, 108))
+    assert np.median(np.abs(u[patch] - 2.0)) < 0.01 and np.median(np.abs(v[patch])) < 0.01
