@@ -41,8 +41,8 @@ from scipy import ndimage
 
 from .errors import SemlabError
 from .stats import robust_sd
-from .variational import (_check_image_pair, _diff, _diff_matrix, _diff_t, _grad_x, _grad_y,
-                          _huber_w, normalise_local)
+from .variational import (VariationalParams, _check_image_pair, _diff, _diff_matrix, _diff_t,
+                          _grad_x, _grad_y, _huber_w, normalise_local)
 
 __all__ = ["FlowParams", "variational_flow"]
 
@@ -74,14 +74,15 @@ class FlowParams:
         Relative residual and iteration cap of each linear solve.
     """
 
+    # the model's terms as the stereo map's (semlab.variational), not set apart
     levels: int = 2
-    warps: int = 5
-    irls: int = 2
-    norm_sigma_px: float = 2.5
-    grad_sigma_px: float = 0.5
-    data_huber: float = 2.0
-    smooth_huber: float = 0.1
-    prior_window_px: int = 15
+    warps: int = VariationalParams.warps
+    irls: int = VariationalParams.irls
+    norm_sigma_px: float = VariationalParams.norm_sigma_px
+    grad_sigma_px: float = VariationalParams.grad_sigma_px
+    data_huber: float = VariationalParams.data_huber
+    smooth_huber: float = VariationalParams.smooth_huber
+    prior_window_px: int = VariationalParams.prior_window_px
     cg_tol: float = 1e-4
     cg_iter: int = 400
 

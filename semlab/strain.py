@@ -798,25 +798,34 @@ def _dense_match(last_img, ref_img, grid, guess, half_windows, smooth_sigma_px, 
     return pts, half > 0, zncc, half
 
 
-def _dense_flow(last_img, ref_img, p_end, back, grid, params, progress):
-    """The variational displacement map (:func:`semlab.flow.variational_flow`) from the last
-    frame into the reference frame, started at the tracks' displacements interpolated to
-    every pixel (linearly, nearest value outside their hull), sampled at the grid points.
-    Returns (positions in the reference frame, inside, the map's info)."""
-    from scipy.interpolate import griddata
+def _track_interpolator(p_end, back):
+    """The tracks' displacement ``back`` ((N, 2), at their last-frame positions ``p_end``)
+    as a function of last-frame points: linear on one Delaunay triangulation of the tracks,
+    the nearest track's value outside their hull."""
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
+    lin = LinearNDInterpolator(p_end, back)
+    near = NearestNDInterpolator(p_end, back)
+
+    def at(pts):
+        v = lin(pts)
+        return np.where(np.isfinite(v), v, near(pts))
+    return at
+
+
+def _dense_flow(last_img, ref_img, start_at, grid, params, progress):
+    """The variational displacement map (:func:`semlab.flow.variational_flow`) from the last
+    frame into the reference frame, started at ``start_at`` (the tracks' displacement,
+    :func:`_track_interpolator`) at every pixel, sampled at the grid points. Returns
+    (positions in the reference frame, inside, the map's info)."""
     from .flow import variational_flow
 
     h, w = last_img.shape
     yy, xx = np.mgrid[0:h, 0:w]
-    pix = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
-    start = []
-    for k in (0, 1):
-        lin = griddata(p_end, back[:, k], pix, method="linear")
-        near = griddata(p_end, back[:, k], pix, method="nearest")
-        start.append(np.where(np.isfinite(lin), lin, near).reshape(h, w))
+    start = start_at(np.column_stack([xx.ravel(), yy.ravel()]).astype(float))
     c = np.round(grid).astype(int)
-    u, v, info = variational_flow(last_img, ref_img, *start, params=params, progress=progress,
+    u, v, info = variational_flow(last_img, ref_img, start[:, 0].reshape(h, w),
+                                  start[:, 1].reshape(h, w), params=params, progress=progress,
                                   n_samples=DENSE_FLOW_SAMPLES, sample_at=c)
     pts = grid + np.column_stack([u[c[:, 1], c[:, 0]], v[c[:, 1], c[:, 0]]])
     inside = ((pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0)
@@ -954,8 +963,10 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     >>> S["E_lsq_sigma"].shape, np.round(np.nanmedian(S["E_lsq_sigma"], axis=0), 4).tolist()
     ((100, 3), [0.001, 0.001, 0.0007])
     """
-    from scipy.interpolate import griddata
 
+    if dense_method not in ("variational", "subsets"):
+        raise SemlabError(f"dense_method must be 'variational' or 'subsets', got "
+                          f"{dense_method!r}")
     s = float(pixel_size_um)
     ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
     out = {"ref_frame": int(ref_frame)}
@@ -996,26 +1007,21 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     gy = np.arange(half + 2, h - half - 2, grid_step_px, dtype=float)
     GX, GY = np.meshgrid(gx, gy)
     grid = np.column_stack([GX.ravel(), GY.ravel()])
-    back = p_ref - p_end  # where end-state points were in the reference frame
-    guess = np.column_stack([griddata(p_end, back[:, k], grid, method="linear") for k in (0, 1)])
-    near = np.column_stack([griddata(p_end, back[:, k], grid, method="nearest") for k in (0, 1)])
-    guess = np.where(np.isfinite(guess), guess, near)
-    if dense_method not in ("variational", "subsets"):
-        raise SemlabError(f"dense_method must be 'variational' or 'subsets', got "
-                          f"{dense_method!r}")
+    # where end-state points were in the reference frame, interpolated from the tracks
+    start_at = _track_interpolator(p_end, p_ref - p_end)
     method = dense_method
     if method == "variational" and h * w > DENSE_FLOW_MAX_PX:
         method = "subsets"      # one whole-frame solve: its memory grows with the pixels
     if method == "variational":
-        pts, conv, finfo = _dense_flow(frames[-1], frames[ref_frame], p_end, back, grid,
+        pts, conv, finfo = _dense_flow(frames[-1], frames[ref_frame], start_at, grid,
                                        dense_flow_params, progress)
         zncc, used = np.full(len(grid), np.nan), np.zeros(len(grid), int)
         out["dense_prior_scale_px"] = finfo["prior_scale_px"]
     else:
         # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
-        pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid, guess,
-                                             dense_half_windows, dense_smooth_sigma_px,
-                                             progress)
+        pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid,
+                                             start_at(grid), dense_half_windows,
+                                             dense_smooth_sigma_px, progress)
     out["dense_method"] = method
     u = (grid - pts) * s  # U(x) = x_end - X_ref, µm
     u[~conv] = np.nan
