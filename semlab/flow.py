@@ -28,6 +28,14 @@ functions by iteratively reweighted least squares; each linear system (the 2 × 
 precision plus a weighted Laplacian per component) solved by conjugate gradients
 preconditioned by classical algebraic multigrid (``pyamg``).
 
+Large frames: a solve holds ~1.7 kB per pixel at its peak, so levels larger than
+``FlowParams.tile_px`` are solved in core tiles, one after another in this process. Only the
+linear solves are tiled: the prior scale and, at each re-warp, the residuals' noise factor
+are measured on the whole level, and each re-warp solves every tile's core and ``halo_px``
+around it with the ring beyond held at the estimate the re-warp started from (the prior's
+edges into it tie the tile to its neighbours), then pastes the cores. A tiled map is the
+whole-frame map to a tenth of its 1σ (``tests/test_flow.py``); without the halo it is not.
+
 Conventions: images ``[row, col]``, displacements in pixels, ``u`` along x (columns), ``v``
 along y (rows).
 """
@@ -72,6 +80,14 @@ class FlowParams:
         The prior-scale rule's window (module docstring).
     cg_tol, cg_iter : float, int
         Relative residual and iteration cap of each linear solve.
+    tile_px : int
+        Levels larger than this along either side are solved in core tiles of this size
+        (multiple of 16, >= 64): a solve holds ~1.7 kB per pixel at its peak (a 1024² frame
+        peaked at 1.8 GB, 2026-12-07), so a 768² core with its halo ~1.4 GB.
+    halo_px : int
+        How far a tile's solve reaches beyond its core, pixels of the level: several of the
+        prior's smoothing lengths (about ``prior_window_px``); the ring beyond it is held at
+        the current estimate, and the re-warps pass the tiles' results to their neighbours.
     """
 
     # the model's terms as the stereo map's (semlab.variational), not set apart
@@ -85,6 +101,8 @@ class FlowParams:
     prior_window_px: int = VariationalParams.prior_window_px
     cg_tol: float = 1e-4
     cg_iter: int = 400
+    tile_px: int = 768
+    halo_px: int = 64
 
     def as_dict(self):
         """The parameters as a plain dict (for the results' records)."""
@@ -101,9 +119,11 @@ def _check(img0, img1, u0, v0, prm):
         raise SemlabError("u0 and v0 hold NaN/inf: give an initial displacement at every pixel "
                           "(e.g. interpolated from tracks, nearest value outside their hull)")
     if not (int(prm.levels) >= 0 and int(prm.warps) >= 1 and int(prm.irls) >= 1
-            and prm.smooth_huber > 0 and prm.data_huber > 0):
+            and prm.smooth_huber > 0 and prm.data_huber > 0 and int(prm.halo_px) >= 0):
         raise SemlabError(f"FlowParams: levels must be >= 0, warps and irls >= 1, the Huber "
-                          f"thresholds > 0, got {prm!r}")
+                          f"thresholds > 0, halo_px >= 0, got {prm!r}")
+    from .parallel import plan_tiles
+    plan_tiles((1, 1), prm.tile_px)        # its own check: a multiple of 16, >= 64
     return a.astype(float), b.astype(float), u, v
 
 
@@ -144,7 +164,8 @@ def _level_noise(img, given, floor):
 
 
 class _Level:
-    """One pyramid level: the normalised frames, their gradients and ``img1``'s splines."""
+    """One pyramid level: the normalised frames, their gradients and ``img1``'s splines,
+    over the whole frame (a few arrays per pixel; the linear systems are built per box)."""
 
     def __init__(self, img0, img1, prm, noise):
         self.n0, self.s0 = normalise_local(img0, prm.norm_sigma_px, noise[0])
@@ -155,19 +176,34 @@ class _Level:
         self.gx0, self.gy0 = _grad_x(g0), _grad_y(g0)
         self.cgx1 = ndimage.spline_filter(_grad_x(g1), order=3, mode="mirror")
         self.cgy1 = ndimage.spline_filter(_grad_y(g1), order=3, mode="mirror")
-        h, w = self.n0.shape
-        self.yy, self.xx = np.mgrid[0:h, 0:w].astype(float)
+
+    def view(self, box=None):
+        """The level over ``box`` = (y0, y1, x0, x1) of ``img0``'s pixels (default all)."""
+        return _View(self, box or (0, self.n0.shape[0], 0, self.n0.shape[1]))
+
+
+class _View:
+    """A box of a level: ``img0``'s arrays cut to it, ``img1`` read wherever the warp goes."""
+
+    def __init__(self, lv, box):
+        y0, y1, x0, x1 = box
+        self.lv, self.box = lv, box
+        self.n0 = lv.n0[y0:y1, x0:x1]
+        self.s0 = lv.s0[y0:y1, x0:x1]
+        self.gx0, self.gy0 = lv.gx0[y0:y1, x0:x1], lv.gy0[y0:y1, x0:x1]
+        self.yy, self.xx = np.mgrid[y0:y1, x0:x1].astype(float)
 
     def warp(self, u, v):
         """Warped ``img1``, the Jacobians along x and y, the residual's noise σ, inside."""
-        h, w = self.n0.shape
+        lv = self.lv
+        h, w = lv.n0.shape
         c = [self.yy + v, self.xx + u]
         inside = (c[1] >= 0) & (c[1] <= w - 1) & (c[0] >= 0) & (c[0] <= h - 1)
         kw = dict(order=3, prefilter=False, mode="mirror")
-        w1 = ndimage.map_coordinates(self.c1, c, **kw)
-        jx = 0.5 * (ndimage.map_coordinates(self.cgx1, c, **kw) + self.gx0)
-        jy = 0.5 * (ndimage.map_coordinates(self.cgy1, c, **kw) + self.gy0)
-        s1 = ndimage.map_coordinates(self.s1, c, order=1, mode="nearest")
+        w1 = ndimage.map_coordinates(lv.c1, c, **kw)
+        jx = 0.5 * (ndimage.map_coordinates(lv.cgx1, c, **kw) + self.gx0)
+        jy = 0.5 * (ndimage.map_coordinates(lv.cgy1, c, **kw) + self.gy0)
+        s1 = ndimage.map_coordinates(lv.s1, c, order=1, mode="nearest")
         return w1, jx, jy, np.sqrt(self.s0 ** 2 + s1 ** 2), inside
 
 
@@ -206,21 +242,95 @@ def _system(lv, u, v, u0, v0, s, k, prm):
     return A, g, wd, jx, jy, prior, lap
 
 
-def _refine(lv, u, v, prm):
-    """IRLS minimisation at one level from ``(u, v)``; returns them, ``s`` and ``k``."""
+def _noise_factor(lv, u, v):
+    """``k``: the robust SD of the normalised residuals left at the warp ``(u, v)``, at least
+    0.25 (the data term's noise rescaled to them)."""
+    w1, _, _, sig, inside = lv.warp(u, v)
+    tin = ((w1 - lv.n0) / sig)[inside]
+    return max(0.25, robust_sd(tin)) if tin.size else 1.0
+
+
+def _boxes(shape, prm):
+    """The level's solve boxes: ``(core, box, free)`` per core tile of ``prm.tile_px``
+    (one box, the whole level, when it fits): ``box`` the core grown by ``prm.halo_px`` and
+    one pinned ring, clipped to the frame, ``free`` its (h, w) mask of unknowns (the ring is
+    held at the current estimate: the prior's edges into it tie the box to its
+    surroundings)."""
+    from .parallel import plan_tiles
+
+    h, w = shape
+    if max(h, w) <= int(prm.tile_px):
+        return [((0, h, 0, w), (0, h, 0, w), None)]
+    out = []
+    r = int(prm.halo_px) + 1
+    for t in plan_tiles(shape, int(prm.tile_px)):
+        box = (max(0, t.y0 - r), min(h, t.y1 + r), max(0, t.x0 - r), min(w, t.x1 + r))
+        free = np.ones((box[1] - box[0], box[3] - box[2]), bool)
+        if box[0] > 0:
+            free[0] = False
+        if box[1] < h:
+            free[-1] = False
+        if box[2] > 0:
+            free[:, 0] = False
+        if box[3] < w:
+            free[:, -1] = False
+        out.append(((t.y0, t.y1, t.x0, t.x1), box, free))
+    return out
+
+
+def _restrict(A, g, free):
+    """The system of a box's free unknowns (both components), and their indices."""
+    if free is None:
+        return A, g, None
+    idx = np.flatnonzero(np.concatenate([free.ravel(), free.ravel()]))
+    return A[idx][:, idx], g[idx], idx
+
+
+def _solve_box(view, u, v, free, s, k, prm):
+    """IRLS of one box from ``(u, v)`` (the box's arrays), its ring held: ``(u, v)``."""
     n = u.size
-    s = _prior_scale(lv, u, v, int(prm.prior_window_px))
+    u0, v0 = u.copy(), v.copy()
+    for _ in range(int(prm.irls)):
+        A, g, *_ = _system(view, u, v, u0, v0, s, k, prm)
+        A, g, idx = _restrict(A, g, free)
+        step = _solver(A, prm)(-g)       # the normal equations for the step
+        if idx is not None:
+            full = np.zeros(2 * n)
+            full[idx] = step
+            step = full
+        u = u + step[:n].reshape(u.shape)
+        v = v + step[n:].reshape(u.shape)
+    return u, v
+
+
+def _cut(a, box):
+    return a[box[0]:box[1], box[2]:box[3]]
+
+
+def _refine(lv, u, v, prm, bar=None):
+    """IRLS minimisation at one level from ``(u, v)``; returns them, ``s`` and ``k``.
+
+    The prior scale and, at each re-warp, the noise factor are measured on the whole level;
+    each re-warp's linear solves run box by box (:func:`_boxes`), every box started at and
+    its ring held at the estimate the re-warp began with, and the boxes' cores pasted
+    together: one box, the whole level, is the untiled minimisation."""
+    whole = lv.view()
+    s = _prior_scale(whole, u, v, int(prm.prior_window_px))
     k = 1.0
+    boxes = _boxes(u.shape, prm)
     for _ in range(int(prm.warps)):
-        w1, _, _, sig, inside = lv.warp(u, v)
-        tin = ((w1 - lv.n0) / sig)[inside]
-        k = max(0.25, robust_sd(tin)) if tin.size else 1.0
-        u0, v0 = u.copy(), v.copy()
-        for _ in range(int(prm.irls)):
-            A, g, *_ = _system(lv, u, v, u0, v0, s, k, prm)
-            step = _solver(A, prm)(-g)       # the normal equations for the step
-            u = u + step[:n].reshape(u.shape)
-            v = v + step[n:].reshape(u.shape)
+        k = _noise_factor(whole, u, v)
+        nu, nv = u.copy(), v.copy()
+        for core, box, free in boxes:
+            bu, bv = _solve_box(lv.view(box), _cut(u, box).copy(), _cut(v, box).copy(), free,
+                                s, k, prm)
+            cy, cx = core[0] - box[0], core[2] - box[2]
+            sl = (slice(cy, cy + core[1] - core[0]), slice(cx, cx + core[3] - core[2]))
+            nu[core[0]:core[1], core[2]:core[3]] = bu[sl]
+            nv[core[0]:core[1], core[2]:core[3]] = bv[sl]
+            if bar is not None:
+                bar.update()
+        u, v = nu, nv
     return u, v, s, k
 
 
@@ -232,24 +342,36 @@ def _posterior_samples(lv, u, v, s, k, prm, n_samples, at, seed=0):
     made the dense strain's 1σ short on a uniform strain (E_xy 54 % / 90 % within 1σ / 2σ,
     scratch 2026-12-07) and at bands; the posterior is conservative on the uniform strain
     (1.7–2.7× the scatter) and close at bands (:func:`semlab.strain.strain_from_tracks`)."""
-    A, _, wd, jx, jy, prior, lap = _system(lv, u, v, u, v, s, k, prm)
-    solve = _solver(A, prm)
-    # the prior's pull on the estimate (its plug-in bias, −A⁻¹ L d̂): the rounding of a step
-    pull = -solve(np.concatenate([lap[0] @ u.ravel(), lap[1] @ v.ravel()]))
-    bias = np.stack([pull[:u.size].reshape(u.shape)[at[:, 1], at[:, 0]],
-                     pull[u.size:].reshape(u.shape)[at[:, 1], at[:, 0]]], -1)
     rng = np.random.default_rng(seed)
-    shape, n = u.shape, u.size
     out = np.empty((int(n_samples), len(at), 2))
-    for i in range(int(n_samples)):
-        d = np.sqrt(wd) * rng.standard_normal(shape)
-        b = [d * jx, d * jy]
-        for c, (wh, wv) in enumerate(prior):
-            b[c] = b[c] + _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, shape)
-            b[c] = b[c] + _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, shape)
-        x = solve(np.concatenate([b[0].ravel(), b[1].ravel()]))
-        out[i, :, 0] = x[:n].reshape(shape)[at[:, 1], at[:, 0]]
-        out[i, :, 1] = x[n:].reshape(shape)[at[:, 1], at[:, 0]]
+    bias = np.empty((len(at), 2))
+    for core, box, free in _boxes(u.shape, prm):
+        mine = np.flatnonzero((at[:, 1] >= core[0]) & (at[:, 1] < core[1])
+                              & (at[:, 0] >= core[2]) & (at[:, 0] < core[3]))
+        if not len(mine):
+            continue
+        bu, bv = _cut(u, box), _cut(v, box)
+        A, _, wd, jx, jy, prior, lap = _system(lv.view(box), bu, bv, bu, bv, s, k, prm)
+        A, _, idx = _restrict(A, np.zeros(A.shape[0]), free)
+        solve = _solver(A, prm)
+        shape, n = bu.shape, bu.size
+        ay, ax = at[mine, 1] - box[0], at[mine, 0] - box[2]
+
+        def solved(rhs):
+            # A⁻¹ rhs over the box's free unknowns (the ring held), at the points
+            x = np.zeros(2 * n)
+            x[slice(None) if idx is None else idx] = solve(rhs if idx is None else rhs[idx])
+            return np.stack([x[:n].reshape(shape)[ay, ax], x[n:].reshape(shape)[ay, ax]], -1)
+
+        # the prior's pull on the estimate (its plug-in bias, −A⁻¹ L d̂): a step's rounding
+        bias[mine] = -solved(np.concatenate([lap[0] @ bu.ravel(), lap[1] @ bv.ravel()]))
+        for i in range(int(n_samples)):
+            d = np.sqrt(wd) * rng.standard_normal(shape)
+            b = [d * jx, d * jy]
+            for c, (wh, wv) in enumerate(prior):
+                b[c] = b[c] + _diff_t(np.sqrt(wh) * rng.standard_normal(wh.shape), 1, shape)
+                b[c] = b[c] + _diff_t(np.sqrt(wv) * rng.standard_normal(wv.shape), 0, shape)
+            out[i, mine] = solved(np.concatenate([b[0].ravel(), b[1].ravel()]))
     return out, bias
 
 
@@ -337,7 +459,9 @@ def variational_flow(img0, img1, u0, v0, params=None, noise_sigma=None, progress
     v = resize(v, p0[-1].shape, order=1, anti_aliasing=levels > 0) / f
     s = k = np.nan
     floor = (_noise_floor(a), _noise_floor(b))
-    for lvl in tqdm(range(levels, -1, -1), desc="displacement map", disable=not progress):
+    bar = tqdm(total=sum(len(_boxes(p.shape, prm)) for p in p0) * int(prm.warps),
+               desc="displacement map", unit="solve", disable=not progress)
+    for lvl in range(levels, -1, -1):
         if lvl < levels:
             u = resize(u, p0[lvl].shape, order=1) * 2.0
             v = resize(v, p0[lvl].shape, order=1) * 2.0
@@ -346,9 +470,10 @@ def variational_flow(img0, img1, u0, v0, params=None, noise_sigma=None, progress
         lv = _Level(p0[lvl], p1[lvl], prm,
                     [_level_noise(im[lvl], noise[i], floor[i] / 2 ** lvl)
                      for i, im in enumerate((p0, p1))])
-        u, v, s, k = _refine(lv, u, v, prm)
+        u, v, s, k = _refine(lv, u, v, prm, bar)
+    bar.close()
     info = {"prior_scale_px": float(s), "noise_factor": float(k), "levels": levels,
-            "params": prm.as_dict()}
+            "tiles": len(_boxes(a.shape, prm)), "params": prm.as_dict()}
     if n_samples:
         info["samples_px"], info["bias_px"] = _posterior_samples(lv, u, v, s, k, prm,
                                                                  n_samples, at)

@@ -173,7 +173,8 @@ def lateral_vs_depth(d_um, z_um, dx_um, dy_um, n_boot=500, seed=0):
     return fig
 
 
-def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=None):
+def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=None,
+                sigma=False):
     """Strain component maps side by side, each with a symmetric colour scale (98th
     percentile of ``|value|``) and its colour bar.
 
@@ -186,6 +187,9 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=Non
     interpolated : (ny, nx) bool array, optional
         Grid points whose displacement was interpolated, not measured (``strain.npz``
         ``dense_filled``): marked with a grey dot on every map and named in the legend.
+    sigma : bool
+        The maps are 1σ error bars (``strain.npz`` ``E_sigma``): a sequential colour scale
+        from 0 to the 98th percentile, labelled as a 1σ.
     """
     plt = _plt()
     s = pixel_size_um or 1.0
@@ -206,12 +210,13 @@ def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=Non
         finite = np.abs(np.asarray(v, float))
         finite = finite[np.isfinite(finite)]
         lim = (float(np.percentile(finite, 98)) if finite.size else 0.0) or 1e-6
-        im = ax.imshow(v, extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        im = ax.imshow(v, extent=ext, cmap="viridis" if sigma else "RdBu_r",
+                       vmin=0.0 if sigma else -lim, vmax=lim)
         ax.set_title(name, fontsize=REPORT_FONTSIZE + 1)
         ax.set_xlabel(f"x ({unit})", fontsize=REPORT_FONTSIZE)
         ax.set_ylabel(f"y ({unit})", fontsize=REPORT_FONTSIZE)
         ax.tick_params(labelsize=REPORT_FONTSIZE)
-        fig.colorbar(im, ax=ax, label="strain (–)")
+        fig.colorbar(im, ax=ax, label="1σ of the strain (–)" if sigma else "strain (–)")
         if marked:
             ax.plot(mx[m], my[m], ".", color="0.3", ms=2.5,
                     label="displacement interpolated (no subset matched)")

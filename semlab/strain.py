@@ -658,13 +658,6 @@ DENSE_WINDOW = 7
 #: the step does (the points left unmatched at a band took part of its step out of the plane
 #: fits; ``benchmarks/dense_strain_bands.py``). The first sets the grid's margin.
 DENSE_HALF_WINDOWS = (10, 7, 5)
-#: Largest frame (pixels) whose dense strain is the variational displacement map
-#: (``dense_method="variational"``: one solve over the whole frame, not tiled; a 1024² pair
-#: peaked at 1.8 GB of RSS and took 92 s on the 2-core machine, 2026-12-07, before the 17
-#: solves of the 1σ's draws were added, so about 1.7 kB per pixel: 1.5 Mpx stays under the
-#: 3 GB target); larger frames take the grid of subsets
-#: (tiled, :mod:`semlab.parallel`), and ``dense_method`` in the results says which.
-DENSE_FLOW_MAX_PX = 1_500_000
 #: Posterior draws of the variational map for the dense strain's 1σ (``E_sigma``).
 DENSE_FLOW_SAMPLES = 16
 
@@ -864,8 +857,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     last frame into ``ref_frame`` on a grid of the last frame (every ``grid_step_px``), by
     ``dense_method``: ``"variational"`` (default) the variational displacement map of
     :func:`semlab.flow.variational_flow` (``dense_flow_params``), started at the tracks'
-    displacements interpolated to every pixel and sampled at the grid points (frames above
-    :data:`DENSE_FLOW_MAX_PX` pixels take the subsets); ``"subsets"`` a grid of subsets
+    displacements interpolated to every pixel and sampled at the grid points (solved in
+    tiles on frames larger than ``FlowParams.tile_px``); ``"subsets"`` a grid of subsets
     matched by IC-GN (initial guess interpolated from the tracks; each point's subset the
     largest of ``dense_half_windows`` that converges, so a point beside a slip band's step is
     matched by a subset that does not straddle it; every converged subset enters, or with
@@ -932,7 +925,9 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     (``ux_um``/``uy_um`` are NaN there; none with the map), ``dense_half_px`` (H, W) int, each
     point's subset half size (0: none converged, or the map; its spatial resolution is
     ``2 h + 1`` pixels), ``dense_method`` (``"variational"`` or ``"subsets"``, the one used),
-    ``dense_prior_scale_px`` (the map's prior scale, with the map), ``E_sigma`` (H, W, 3),
+    ``dense_prior_scale_px`` (the map's prior scale, with the map), ``dense_flow_tiles`` (the
+    map's tiles at full resolution, 1: untiled), ``dense_flow_params`` (its
+    :class:`~semlab.flow.FlowParams` as a dict), ``E_sigma`` (H, W, 3),
     the 1σ of the dense ``(E_xx, E_yy, E_xy)`` (with the map only), and ``E_surface`` when
     heights are given.
 
@@ -1010,13 +1005,13 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     # where end-state points were in the reference frame, interpolated from the tracks
     start_at = _track_interpolator(p_end, p_ref - p_end)
     method = dense_method
-    if method == "variational" and h * w > DENSE_FLOW_MAX_PX:
-        method = "subsets"      # one whole-frame solve: its memory grows with the pixels
     if method == "variational":
         pts, conv, finfo = _dense_flow(frames[-1], frames[ref_frame], start_at, grid,
                                        dense_flow_params, progress)
         zncc, used = np.full(len(grid), np.nan), np.zeros(len(grid), int)
         out["dense_prior_scale_px"] = finfo["prior_scale_px"]
+        out["dense_flow_tiles"] = finfo["tiles"]
+        out["dense_flow_params"] = finfo["params"]
     else:
         # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
         pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid,

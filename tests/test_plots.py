@@ -286,6 +286,14 @@ def test_strain_maps_directions_and_history():
     assert "interpolated" in leg.get_texts()[0].get_text()
     fig = plots.strain_maps(gx, gy, {"E_xx": np.full((6, 10), np.nan)})   # nothing measured
     assert fig.axes[0].images[0].get_clim() == pytest.approx((-1e-6, 1e-6))
+    # error bars: a one-sided scale from 0, labelled as the 1σ
+    sig = np.linspace(1e-4, 1e-3, 60).reshape(6, 10)
+    fig = plots.strain_maps(gx, gy, {"1σ of E_xx": sig}, sigma=True)
+    assert fig.axes[0].images[0].get_clim() == pytest.approx((0.0, np.percentile(sig, 98)))
+    assert fig.axes[1].get_ylabel() == "1σ of the strain (–)"
+    assert fig.axes[0].images[0].get_cmap().name == "viridis"
+    fig = plots.strain_maps(gx, gy, {"E_xx": np.full((6, 10), np.nan)})
+    assert fig.axes[0].images[0].get_clim() == pytest.approx((-1e-6, 1e-6))
     ax = plots.principal_directions(gx, gy, e, np.zeros_like(e))
     assert ax.get_legend() is not None and ax.yaxis_inverted()
     ax = plots.strain_history({"exx": [0.0, 0.001, 0.002], "eyy": [0, 0, 0.001]},

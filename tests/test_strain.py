@@ -559,16 +559,19 @@ def test_dense_strain_sigma_holds_at_a_noisy_step():
             assert np.isfinite(z).all() and (z < 2).mean() >= 0.9, (seed, c, (z < 2).mean())
 
 
-def test_frames_above_the_map_limit_take_the_subsets(monkeypatch):
-    """The variational map is one whole-frame solve: frames with more pixels than
-    DENSE_FLOW_MAX_PX take the (tiled) subset grid, and the results say so."""
-    import semlab.strain as st
+def test_frames_larger_than_a_tile_get_the_tiled_map():
+    """Frames larger than ``FlowParams.tile_px`` get the variational map solved in tiles (not
+    the subset grid, as frames above 1.5 Mpx did before), the results say how many, and the
+    dense strain is the untiled one within a tenth of its 1σ (the tiles' posterior draws:
+    ``tests/test_flow.py``)."""
+    from semlab.flow import FlowParams
 
     f0, f1, _, _, xy, valid, _ = _slip_step_series(1.5, 80.0, 1.5)
     kw = dict(pixel_size_um=0.03, ref_frame=0, gauge_length_px=30.0)
-    monkeypatch.setattr(st, "DENSE_FLOW_MAX_PX", f0.size - 1)
     S = strain_from_tracks([f0, f1], xy, valid, **kw)
-    assert S["dense_method"] == "subsets" and "E_sigma" not in S
-    assert np.isfinite(S["zncc"]).any()
-    monkeypatch.setattr(st, "DENSE_FLOW_MAX_PX", f0.size)
-    assert strain_from_tracks([f0, f1], xy, valid, **kw)["dense_method"] == "variational"
+    T = strain_from_tracks([f0, f1], xy, valid, dense_flow_params=FlowParams(tile_px=64), **kw)
+    assert S["dense_flow_tiles"] == 1 and T["dense_flow_tiles"] == 9
+    assert T["dense_method"] == "variational" and np.isfinite(T["E_sigma"]).all()
+    for c, (i, j) in enumerate(((0, 0), (1, 1), (0, 1))):
+        d = np.abs(T["E"][..., i, j] - S["E"][..., i, j]) / S["E_sigma"][..., c]
+        assert d.max() < 0.1, (c, d.max())

@@ -673,6 +673,25 @@ if S:
     ax = plots.principal_directions(S["grid_x_px"], S["grid_y_px"], S["e1"], S["angle_deg"],
                                     exp.pixel_size_um)
 '''),
+    md("""
+## How well the dense strain is measured
+
+The 1σ of each dense strain component (the variational map's posterior through the same plane
+fits, with its rounding of a slip band's step): where |E| is below about 2σ the strain is not
+resolved. Largest on the bands and where the frames have little texture.
+"""),
+    code('''
+if S and "E_sigma" in S:
+    fig = plots.strain_maps(S["grid_x_px"], S["grid_y_px"],
+                            {f"1σ of {c}": S["E_sigma"][..., i]
+                             for i, c in enumerate(("E_xx", "E_yy", "E_xy"))},
+                            exp.pixel_size_um, sigma=True)
+    E3 = np.stack([S["E"][..., 0, 0], S["E"][..., 1, 1], S["E"][..., 0, 1]], -1)
+    measured = np.isfinite(E3) & np.isfinite(S["E_sigma"])
+    resolved = (np.abs(np.where(measured, E3, 0.0)) > 2 * S["E_sigma"]) & measured
+    print("grid points with a strain where |E| > 2σ (xx, yy, xy):",
+          np.round(100 * resolved.sum(axis=(0, 1)) / measured.sum(axis=(0, 1)), 1), "%")
+'''),
     md("## Sparse strain (tracks) and the surface strain with heights"),
     code('''
 if S:
