@@ -63,6 +63,10 @@ def test_errors():
         variational_flow(f0, f0, zn, z)
     with pytest.raises(SemlabError, match="warps and irls"):
         variational_flow(f0, f0, z, z, params=FlowParams(warps=0))
+    with pytest.raises(SemlabError, match="tile_px must be"):
+        variational_flow(f0, f0, z, z, params=FlowParams(tile_px=50))
+    with pytest.raises(SemlabError, match="halo_px >= 0"):
+        variational_flow(f0, f0, z, z, params=FlowParams(halo_px=-1))
     with pytest.raises(SemlabError, match="sample_at"):
         variational_flow(f0, f0, z, z, n_samples=4)
     with pytest.raises(SemlabError, match="sample_at"):
