@@ -413,6 +413,7 @@ def variational_flow(img0, img1, u0, v0, params=None, noise_sigma=None, progress
         ``img1``.
     info : dict
         ``prior_scale_px`` and ``noise_factor`` of the finest level, ``levels`` (used),
+        ``tiles`` (the finest level's solve tiles, 1: untiled; ``params.tile_px``),
         ``params``, and ``samples_px`` and ``bias_px`` with ``n_samples``.
 
     Raises
