@@ -48,14 +48,13 @@ v_true = -0.001 * (yy - H / 2)
 f1 = ndimage.map_coordinates(f0, [yy - v_true, xx - u_true], order=3, mode="nearest")
 f0 = f0 + rng.normal(0, 5, f0.shape)
 f1 = f1 + rng.normal(0, 5, f0.shape)
-del yy
-g = np.column_stack([xx[8::16, 8::16].ravel(), np.mgrid[0:H, 0:W][0][8::16, 8::16].ravel()])
+g = np.column_stack([xx[8::16, 8::16].ravel(), yy[8::16, 8::16].ravel()])
+del xx, yy
 t = time.perf_counter()
 u, v, info = variational_flow(f0, f1, np.zeros((H, W)), np.zeros((H, W)), n_samples=16,
                               sample_at=g.astype(int))
 dt = time.perf_counter() - t
 m = (slice(40, -40), slice(40, -40))
-yy = np.mgrid[0:H, 0:W][0].astype(float)
 print(f"| {{H}}×{{W}} ({{H * W / 1e6:.1f}} Mpx) | {{info['tiles']}} | "
       f"{{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6:.2f}} GB | {{dt:.0f}} s | "
       f"{{np.sqrt(np.mean((u - u_true)[m] ** 2)):.4f}} / {{np.sqrt(np.mean((v - v_true)[m] ** 2)):.4f}} px | "

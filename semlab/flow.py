@@ -278,12 +278,19 @@ def _boxes(shape, prm):
     return out
 
 
-def _restrict(A, g, free):
-    """The system of a box's free unknowns (both components), and their indices."""
+def _box_solver(A, free, prm):
+    """``rhs -> A⁻¹ rhs`` over a box's free unknowns (both components; ``free`` None: all),
+    the held ring's entries 0: ``A`` restricted to them and solved by :func:`_solver`."""
     if free is None:
-        return A, g, None
+        return _solver(A, prm)
     idx = np.flatnonzero(np.concatenate([free.ravel(), free.ravel()]))
-    return A[idx][:, idx], g[idx], idx
+    solve = _solver(A[idx][:, idx], prm)
+
+    def solve_free(rhs):
+        x = np.zeros(A.shape[0])
+        x[idx] = solve(rhs[idx])
+        return x
+    return solve_free
 
 
 def _solve_box(view, u, v, free, s, k, prm):
@@ -292,12 +299,7 @@ def _solve_box(view, u, v, free, s, k, prm):
     u0, v0 = u.copy(), v.copy()
     for _ in range(int(prm.irls)):
         A, g, *_ = _system(view, u, v, u0, v0, s, k, prm)
-        A, g, idx = _restrict(A, g, free)
-        step = _solver(A, prm)(-g)       # the normal equations for the step
-        if idx is not None:
-            full = np.zeros(2 * n)
-            full[idx] = step
-            step = full
+        step = _box_solver(A, free, prm)(-g)       # the normal equations for the step
         u = u + step[:n].reshape(u.shape)
         v = v + step[n:].reshape(u.shape)
     return u, v
@@ -352,15 +354,13 @@ def _posterior_samples(lv, u, v, s, k, prm, n_samples, at, seed=0):
             continue
         bu, bv = _cut(u, box), _cut(v, box)
         A, _, wd, jx, jy, prior, lap = _system(lv.view(box), bu, bv, bu, bv, s, k, prm)
-        A, _, idx = _restrict(A, np.zeros(A.shape[0]), free)
-        solve = _solver(A, prm)
+        solve = _box_solver(A, free, prm)
         shape, n = bu.shape, bu.size
         ay, ax = at[mine, 1] - box[0], at[mine, 0] - box[2]
 
         def solved(rhs):
-            # A⁻¹ rhs over the box's free unknowns (the ring held), at the points
-            x = np.zeros(2 * n)
-            x[slice(None) if idx is None else idx] = solve(rhs if idx is None else rhs[idx])
+            # A⁻¹ rhs (the ring held) at the points
+            x = solve(rhs)
             return np.stack([x[:n].reshape(shape)[ay, ax], x[n:].reshape(shape)[ay, ax]], -1)
 
         # the prior's pull on the estimate (its plug-in bias, −A⁻¹ L d̂): a step's rounding
