@@ -53,6 +53,7 @@ STEP_FILES = {"stereo": ("points3d.csv", "calibration.json"),
 STEREO_METHODS = (None, "raw", "refined", "auto", "merged")
 TRACK_METHODS = ("lk", "subset")
 MAP_PRIORS = ("isotropic", "band")
+DENSE_STRAIN_METHODS = ("variational", "subsets")
 
 
 class StepFailed(SemlabError):
@@ -122,6 +123,12 @@ class AnalysisConfig:
         matrix where the isotropic prior gives 0.69–1.00×, at ~2.5× the map's time; README,
         "Accuracy and speed"); ``"isotropic"`` smooths alike in every direction (the
         default before; ``VariationalParams(**semlab.variational.ISOTROPIC)``).
+    dense_strain_method : {"variational", "subsets"}
+        The dense strain's displacement (``strain_from_tracks(dense_method=...)``): the
+        variational map of :func:`semlab.flow.variational_flow` (default; every pixel, with the
+        strain's 1σ ``E_sigma``, solved in tiles on large frames) or a grid of IC-GN subsets
+        (faster on large frames, no ``E_sigma``; 1.4–2.8× less accurate on the four slip-band
+        series of ``benchmarks/dense_strain_bands.py``).
     """
 
     stereo_method: str | None = None
@@ -136,6 +143,7 @@ class AnalysisConfig:
     heightmap_roi: tuple | None = None
     heightmap_method: str = "variational"
     map_prior: str = "band"
+    dense_strain_method: str = "variational"
 
     def __post_init__(self):
         if self.heightmap_roi is not None:
@@ -172,6 +180,9 @@ class AnalysisConfig:
                               "'variational'")
         if self.map_prior not in MAP_PRIORS:
             raise SemlabError(f"map_prior = {self.map_prior!r}: use 'isotropic' or 'band'")
+        if self.dense_strain_method not in DENSE_STRAIN_METHODS:
+            raise SemlabError(f"dense_strain_method = {self.dense_strain_method!r}: use "
+                              "'variational' or 'subsets'")
         if not isinstance(self.heightmap, bool):
             raise SemlabError(f"heightmap = {self.heightmap!r}: give true or false")
         if self.gauge_length_px is not None and not self.gauge_length_px > 0:
@@ -237,7 +248,7 @@ class AnalysisConfig:
                            "stereo_grid_target", "map_prior"),
                "heightmap": ("heightmap_roi", "heightmap_method"),
                "tracking": ("track_method", "track_target"),
-               "strain": ("gauge_length_px",)}
+               "strain": ("gauge_length_px", "dense_strain_method")}
         needs = {"stereo": ("stereo",), "heightmap": ("stereo", "heightmap"),
                  "tracking": ("stereo", "tracking"),
                  "strain": ("stereo", "tracking", "strain")}
@@ -684,7 +695,8 @@ class Analysis:
 
         def compute():
             return series.run_strain(exp, self._needs("tracking"),
-                                     gauge_length_px=cfg.gauge_length_px, progress=self.progress)
+                                     gauge_length_px=cfg.gauge_length_px,
+                                     dense_method=cfg.dense_strain_method, progress=self.progress)
 
         if not self.has_series:
             raise StepFailed(f"{exp.toml_path}: no [series] table, so no strain")

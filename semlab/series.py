@@ -194,7 +194,8 @@ def run_tracking(exp, stereo=None, method="lk", corner_kw=None, track_kw=None, p
 
 
 @strict_keywords
-def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progress=False):
+def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progress=False,
+               dense_method="variational"):
     """Strain between the earliest frame that still has enough valid tracks and the last.
 
     Parameters
@@ -205,6 +206,8 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
         Sparse-strain gauge length (None: from the track density).
     min_tracks : int
         A reference frame needs at least ``max(min_tracks, 0.2 × tracks)`` valid tracks.
+    dense_method : {"variational", "subsets"}
+        The dense strain's displacement (:func:`semlab.strain.strain_from_tracks`).
 
     Returns
     -------
@@ -250,7 +253,7 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
     out = st.strain_from_tracks(frames, tracks.xy, tracks.valid, tr.pixel_size_um,
                                 int(enough[0]), gauge_length_px=gauge_length_px,
                                 heights=heights, progress=progress,
-                                sigma_px=_position_sigma(tracks))
+                                sigma_px=_position_sigma(tracks), dense_method=dense_method)
     out["history"] = tracking_strain_history(tracks, exp.series.cycles, tr.pixel_size_um)
     return out
 

@@ -131,3 +131,26 @@ def test_run_strain_writes_the_sparse_strain_sigma_of_the_tracks(small_series, t
     S_chained = series.run_strain(small_series, chained)
     assert np.isnan(S_chained["E_lsq_sigma"]).all()
     assert np.isnan(S_chained["history"]["exx_sigma"]).all()
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_the_dense_strain_method_is_a_setting_of_the_analysis(small_series, tmp_path,
+                                                              monkeypatch):
+    """``AnalysisConfig.dense_strain_method`` picks the dense strain's displacement (the
+    subsets: no E_sigma), keys the strain step's cache, and a wrong word is an error naming
+    the setting."""
+    r = series.run_tracking(small_series, progress=False, grid_kw={"spacing_px": 16})
+    allv = dataclasses.replace(r, tracks=dataclasses.replace(   # the strain step's test
+        r.tracks, valid=np.isfinite(r.tracks.xy).all(axis=2)))
+    monkeypatch.setattr(series, "run_tracking", lambda *a, **k: allv)
+    subs = semlab.Analysis(small_series, tmp_path / "subsets", progress=False,
+                           dense_strain_method="subsets")
+    S = subs.strain()
+    assert str(S["dense_method"]) == "subsets" and "E_sigma" not in S
+    var = semlab.Analysis(small_series, tmp_path / "map", progress=False)
+    assert var.config.dense_strain_method == "variational"
+    assert str(var.strain()["dense_method"]) == "variational"
+    assert (subs.config.for_step("strain")["dense_strain_method"]
+            != var.config.for_step("strain")["dense_strain_method"])
+    with pytest.raises(SemlabError, match="dense_strain_method = 'dic'.*'subsets'"):
+        semlab.AnalysisConfig(dense_strain_method="dic")
