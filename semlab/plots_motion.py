@@ -175,8 +175,8 @@ def lateral_vs_depth(d_um, z_um, dx_um, dy_um, n_boot=500, seed=0):
 
 def strain_maps(grid_x_px, grid_y_px, maps, pixel_size_um=None, interpolated=None,
                 sigma=False):
-    """Strain component maps side by side, each with a symmetric colour scale (98th
-    percentile of ``|value|``) and its colour bar.
+    """Strain component maps side by side, each with its colour bar: a symmetric scale (98th
+    percentile of ``|value|``), or with ``sigma`` a one-sided scale from 0 for their 1σ.
 
     Parameters
     ----------
