@@ -235,11 +235,11 @@ def run_strain(exp, tracking_result, gauge_length_px=None, min_tracks=20, progre
     need = max(min_tracks, 0.2 * n)
     enough = np.flatnonzero(counts >= need)
     if not len(enough):
+        best = int(np.argmax(counts)) if len(counts) else 0
         raise SemlabError(
             f"{exp.toml_path}: no strain: no frame before the last has enough valid tracks "
-            f"(best: {int(counts.max()) if len(counts) else 0} of {n} in frame "
-            f"{int(np.argmax(counts)) if len(counts) else 0}, need {int(np.ceil(need))}); "
-            "try track_method='subset' or a series with more texture in its early frames")
+            f"(best: {int(counts.max()) if len(counts) else 0} of {n} in frame {best}, need "
+            f"{int(np.ceil(need))}); {_why_tracks_invalid(tracks, best)}")
     heights = None
     has_z = np.isfinite(tr.z_um)
     if has_z.sum() >= 10:
@@ -317,6 +317,25 @@ def write_tracking_results(result, out_dir, overwrite=False):
     if reg is not None:
         write_drift_csv(paths[2], reg, overwrite=overwrite)
     return paths
+
+
+def _why_tracks_invalid(tracks, frame):
+    """What a user can do about too few valid tracks in ``frame``: with LK, the subsets; with
+    subsets whose predicted σ exceeds the tracking's ``max_sigma_px`` at most points, the
+    frames' information (texture against noise) is the limit, said with the numbers."""
+    if tracks.method != "subset":
+        return "try track_method='subset' or a series with more texture in its early frames"
+    cap = tracks.params.get("max_sigma_px")
+    sig = tracks.sigma_px[frame][np.isfinite(tracks.sigma_px[frame])]
+    if cap is None or not len(sig) or np.mean(sig > cap) < 0.5:
+        return ("the steps failed the tracking's other checks (forward–backward, ZNCC, residual, "
+                "median test): see the tracking notebook's reliability flags; a series with more "
+                "texture in its early frames, or less motion between frames, tracks further")
+    return (f"there the tracks' median predicted 1σ is {np.median(sig):.2f} px and "
+            f"{100 * np.mean(sig > cap):.0f} % of them exceed the {cap:g} px a valid step may "
+            "have even with the largest subset: the frames' texture is too weak for their "
+            "noise; frames with less noise (a longer dwell or more averaging) or more texture "
+            "are needed")
 
 
 def write_strain_results(strain, out_dir, overwrite=False):

@@ -97,6 +97,21 @@ def test_no_strain_is_an_error_of_the_strain_step(small_series, tmp_path, monkey
     assert (tmp_path / "out" / "tracks.csv").is_file()
     with pytest.raises(semlab.StepFailed, match="enough valid tracks"):
         an.strain()
+    # LK tracks: the subsets are the advice; subsets whose σ exceeds the tracking's cap:
+    # the frames' information is the limit, with the numbers
+    with pytest.raises(SemlabError, match="try track_method='subset'"):
+        series.run_strain(small_series, lost)
+    weak = dataclasses.replace(lost, tracks=dataclasses.replace(
+        lost.tracks, method="subset", params={**tr.params, "max_sigma_px": 0.1},
+        sigma_px=np.full(tr.sigma_px.shape, 0.3)))
+    with pytest.raises(SemlabError, match=r"median predicted 1σ is 0\.30 px and 100 % of them "
+                                          r"exceed the 0\.1 px.*less noise") as info:
+        series.run_strain(small_series, weak)
+    assert "track_method='subset'" not in str(info.value)
+    sharp = dataclasses.replace(weak, tracks=dataclasses.replace(
+        weak.tracks, sigma_px=np.full(tr.sigma_px.shape, 0.01)))
+    with pytest.raises(SemlabError, match="failed the tracking's other checks"):
+        series.run_strain(small_series, sharp)
 
 
 @pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
