@@ -333,9 +333,10 @@ def _why_tracks_invalid(tracks, frame):
                 "texture in its early frames, or less motion between frames, tracks further")
     return (f"there the tracks' median predicted 1σ is {np.median(sig):.2f} px and "
             f"{100 * np.mean(sig > cap):.0f} % of them exceed the {cap:g} px a valid step may "
-            "have even with the largest subset: the frames' texture is too weak for their "
-            "noise; frames with less noise (a longer dwell or more averaging) or more texture "
-            "are needed")
+            "have: within subsets small enough to follow the deformation, the frames' texture "
+            "is too weak for their noise; frames with less noise (a longer dwell or more "
+            "averaging), more texture, or more frames (less deformation between them) are "
+            "needed")
 
 
 def write_strain_results(strain, out_dir, overwrite=False):
