@@ -29,6 +29,7 @@ __all__ = [
     "mean_gradient_cov",
     "triangle_gradient_cov",
     "gradient_from_field",
+    "chained_flow_start",
     "dense_field_strain",
     "fill_dense_holes",
     "small_strain",
@@ -826,6 +827,53 @@ def _dense_flow(last_img, ref_img, start_at, grid, params, progress):
     return pts, inside, info
 
 
+def chained_flow_start(frames, ref_frame, registration=None, params=None, progress=False):
+    """A start for the dense map from the last frame into ``ref_frame`` without tracks.
+
+    Variational maps (:func:`semlab.flow.variational_flow`) from the last frame into each
+    earlier frame in turn, down to ``ref_frame + 1``, each started at the one before plus the
+    stage drift between the two frames (``registration``): every map starts within one
+    frame's deformation of its answer, as the tracks step back one frame at a time.
+
+    Parameters
+    ----------
+    frames : sequence of F (H, W) arrays, chronological (the last is the end state)
+    ref_frame : int
+    registration : semlab.registration.Registration, optional
+        The series' drift (``transforms[k]`` maps last-frame pixels into frame k); None: no
+        drift.
+    params : semlab.flow.FlowParams, optional
+    progress : bool
+
+    Returns
+    -------
+    (H, W, 2) float array
+        Displacement (x, y) of every last-frame pixel into ``ref_frame``, pixels: the map into
+        ``ref_frame + 1`` moved by the drift between it and ``ref_frame``.
+    """
+    from tqdm.auto import tqdm
+
+    from .flow import variational_flow
+
+    h, w = frames[-1].shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    p = np.column_stack([xx.ravel(), yy.ravel()])
+
+    def drift(k):
+        if registration is None:
+            return np.zeros((h, w, 2))
+        return (registration.transforms[k](p) - p).reshape(h, w, 2)
+
+    last = len(frames) - 1
+    d = np.zeros((h, w, 2))
+    for k in tqdm(range(last - 1, ref_frame, -1), desc="dense map, frame by frame",
+                  disable=not progress):
+        d = d + drift(k) - drift(k + 1)
+        u, v, _ = variational_flow(frames[-1], frames[k], d[..., 0], d[..., 1], params=params)
+        d = np.stack([u, v], -1)
+    return d + drift(ref_frame) - drift(ref_frame + 1) if ref_frame < last else d
+
+
 def _dense_sigma(samples_px, bias_px, ux, uy, E, step_px, s, window):
     """1σ of the dense strain's ``(E_xx, E_yy, E_xy)``, (H, W, 3), from the variational map's
     posterior draws of the grid points' displacement (``(n, N, 2)`` pixels, perturbations of
@@ -848,7 +896,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
                        dense_window=DENSE_WINDOW, dense_min_zncc=DENSE_MIN_ZNCC,
                        dense_smooth_sigma_px=DENSE_SMOOTH_SIGMA_PX, sigma_px=None,
                        dense_half_windows=DENSE_HALF_WINDOWS, dense_fill=True,
-                       dense_method="variational", dense_flow_params=None):
+                       dense_method="variational", dense_flow_params=None,
+                       dense_start_px=None):
     """Strain between ``ref_frame`` and the last frame, sparse and dense.
 
     Sparse: constant-strain Delaunay triangles and a local least-squares gradient with gauge
@@ -912,6 +961,11 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
         The dense displacement (above).
     dense_flow_params : semlab.flow.FlowParams, optional
         Parameters of the variational map (default ``FlowParams()``).
+    dense_start_px : (H, W, 2) array, optional
+        Where the dense displacement starts instead of the tracks' (x, y displacement of
+        every last-frame pixel into ``ref_frame``, pixels; e.g. :func:`chained_flow_start`).
+        With it, fewer than 6 tracks valid in both frames leave the sparse strain empty
+        (``pts_px`` (0, 2), ``gauge_length_um`` NaN) instead of raising.
 
     Returns
     -------
@@ -966,9 +1020,48 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     ok = valid[ref_frame] & valid[-1] & np.all(np.isfinite(xy[ref_frame]), axis=1)
     out = {"ref_frame": int(ref_frame)}
     p_ref, p_end = xy[ref_frame][ok], xy[-1][ok]
-    if ok.sum() < 6:
+    if ok.sum() < 6 and dense_start_px is None:
         raise SemlabError(f"only {int(ok.sum())} tracks are valid in both frame {ref_frame} and the "
                           "last frame: too few for strain (need 6)")
+    h, w = frames[-1].shape
+    if dense_start_px is not None:
+        start_px = np.asarray(dense_start_px, float)
+        if start_px.shape != (h, w, 2) or not np.all(np.isfinite(start_px)):
+            raise SemlabError(f"dense_start_px must be a finite ({h}, {w}, 2) array, got "
+                              f"shape {start_px.shape}")
+    if ok.sum() < 6:
+        out.update(_no_sparse_strain())
+    else:
+        out.update(_sparse_strain(p_ref, p_end, s, gauge_length_px, ok, ref_frame, sigma_px,
+                                  np.shape(xy)[:2]))
+
+    # dense: the displacement from the last frame into the reference frame on a grid of the
+    # last frame, started from the tracks (or dense_start_px)
+    if dense_start_px is None:
+        # where end-state points were in the reference frame, interpolated from the tracks
+        start_at = _track_interpolator(p_end, p_ref - p_end)
+    else:
+        def start_at(pts):
+            c = np.clip(np.round(pts).astype(int), 0, [w - 1, h - 1])
+            return start_px[c[:, 1], c[:, 0]]
+    out.update(_dense_strain(frames, ref_frame, s, start_at, heights, progress,
+                             grid_step_px=grid_step_px, window=dense_window,
+                             min_zncc=dense_min_zncc, smooth_sigma_px=dense_smooth_sigma_px,
+                             half_windows=dense_half_windows, fill=dense_fill,
+                             method=dense_method, flow_params=dense_flow_params))
+    return out
+
+
+def _no_sparse_strain():
+    """The sparse part of :func:`strain_from_tracks` without tracks: empty, NaN gauge."""
+    z3, z22 = np.zeros((0, 3)), np.zeros((0, 2, 2))
+    return dict(gauge_length_um=np.nan, pts_px=np.zeros((0, 2)), E_lsq=z22, E_lsq_sigma=z3,
+                tri=np.zeros((0, 3), int), E_tri=z22, E_tri_sigma=z3)
+
+
+def _sparse_strain(p_ref, p_end, s, gauge_length_px, ok, ref_frame, sigma_px, shape):
+    """The sparse part of :func:`strain_from_tracks` (its docstring)."""
+    out = {}
     disp_um = (p_end - p_ref) * s
     if gauge_length_px is None:
         span = np.ptp(p_ref, axis=0)
@@ -980,8 +1073,8 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
         E_lsq_sigma = np.full((len(G_lsq), 3), np.nan)
     else:
         sig = np.asarray(sigma_px, float)
-        if sig.shape != np.shape(xy)[:2]:
-            raise SemlabError(f"sigma_px must have shape {np.shape(xy)[:2]} (frames, tracks), "
+        if sig.shape != shape:
+            raise SemlabError(f"sigma_px must have shape {shape} (frames, tracks), "
                               f"got {sig.shape}")
         G_lsq, G_cov = gradient_local_lsq(p_ref * s, disp_um, gauge_length_px * s,
                                           disp_sigma=sig[ref_frame][ok] * s)
@@ -994,20 +1087,23 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
                                                                 sig[ref_frame][ok] * s))
     out.update(pts_px=p_end, E_lsq=green_lagrange(G_lsq), E_lsq_sigma=E_lsq_sigma, tri=tri,
                E_tri=green_lagrange(G_tri), E_tri_sigma=E_tri_sigma)
+    return out
 
-    # dense: subsets on a grid of the last frame, matched into the reference frame
+
+def _dense_strain(frames, ref_frame, s, start_at, heights, progress, grid_step_px, window,
+                  min_zncc, smooth_sigma_px, half_windows, fill, method, flow_params):
+    """The dense part of :func:`strain_from_tracks` (its docstring; the arguments its
+    ``dense_*`` ones), from ``start_at``: last-frame points -> their start displacement."""
+    out = {}
     h, w = frames[-1].shape
-    half = int(dense_half_windows[0])
+    half = int(half_windows[0])
     gx = np.arange(half + 2, w - half - 2, grid_step_px, dtype=float)
     gy = np.arange(half + 2, h - half - 2, grid_step_px, dtype=float)
     GX, GY = np.meshgrid(gx, gy)
     grid = np.column_stack([GX.ravel(), GY.ravel()])
-    # where end-state points were in the reference frame, interpolated from the tracks
-    start_at = _track_interpolator(p_end, p_ref - p_end)
-    method = dense_method
     if method == "variational":
         pts, conv, finfo = _dense_flow(frames[-1], frames[ref_frame], start_at, grid,
-                                       dense_flow_params, progress)
+                                       flow_params, progress)
         zncc, used = np.full(len(grid), np.nan), np.zeros(len(grid), int)
         out["dense_prior_scale_px"] = finfo["prior_scale_px"]
         out["dense_flow_tiles"] = finfo["tiles"]
@@ -1015,20 +1111,20 @@ def strain_from_tracks(frames, xy, valid, pixel_size_um, ref_frame, gauge_length
     else:
         # in tiles on the cluster for large frames (the untiled result, see semlab.parallel)
         pts, conv, zncc, used = _dense_match(frames[-1], frames[ref_frame], grid,
-                                             start_at(grid), dense_half_windows,
-                                             dense_smooth_sigma_px, progress)
+                                             start_at(grid), half_windows,
+                                             smooth_sigma_px, progress)
     out["dense_method"] = method
     u = (grid - pts) * s  # U(x) = x_end - X_ref, µm
     u[~conv] = np.nan
     ux = u[:, 0].reshape(GX.shape)
     uy = u[:, 1].reshape(GX.shape)
     zncc = zncc.reshape(GX.shape)
-    Fd, E, filled = dense_field_strain(ux, uy, grid_step_px * s, dense_window, zncc,
-                                       dense_min_zncc, fill=dense_fill)
+    Fd, E, filled = dense_field_strain(ux, uy, grid_step_px * s, window, zncc, min_zncc,
+                                       fill=fill)
     if method == "variational":
         out["E_sigma"] = _dense_sigma(finfo["samples_px"], finfo["bias_px"], ux, uy, E,
-                                      grid_step_px, s, dense_window)
-    out["dense_gauge_um"] = dense_window * grid_step_px * s
+                                      grid_step_px, s, window)
+    out["dense_gauge_um"] = window * grid_step_px * s
     eye = np.eye(2)
     e1, e2, ang = principal_strains(E)
     out.update(grid_x_px=gx, grid_y_px=gy, ux_um=ux, uy_um=uy, E=E, e1=e1, e2=e2, angle_deg=ang,

@@ -78,18 +78,20 @@ def test_run_tracking_adds_grid_seeds(small_series):
 
 @pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
 def test_no_strain_is_an_error_of_the_strain_step(small_series, tmp_path, monkeypatch):
-    """Too few valid tracks before the last frame: run_strain raises, and in an analysis the
-    strain step fails with that message (its status, which `semlab run` turns into the
-    error and exit status 2) and writes no strain.npz, never an empty one."""
+    """Too few valid tracks before the last frame and the dense strain from subsets (whose
+    start is the tracks'): run_strain raises, and in an analysis the strain step fails with
+    that message (its status, which `semlab run` turns into the error and exit status 2) and
+    writes no strain.npz, never an empty one."""
     r = series.run_tracking(small_series, progress=False)
     tr = r.tracks
     lost = dataclasses.replace(r, tracks=dataclasses.replace(
         tr, valid=np.vstack([np.zeros_like(tr.valid[:-1]), tr.valid[-1:]])))
     with pytest.raises(SemlabError, match="no strain: no frame before the last has enough "
-                                          "valid tracks"):
-        series.run_strain(small_series, lost)
+                                          "valid tracks.*does not need the tracks"):
+        series.run_strain(small_series, lost, dense_method="subsets")
     monkeypatch.setattr(series, "run_tracking", lambda *a, **k: lost)
-    an = semlab.Analysis(small_series, tmp_path / "out", progress=False)
+    an = semlab.Analysis(small_series, tmp_path / "out", progress=False,
+                         dense_strain_method="subsets")
     status = an.run(["tracking", "strain"])
     assert status["tracking"] == "ok"
     assert "step 'strain' failed" in status["strain"] and "no strain" in status["strain"]
@@ -100,18 +102,18 @@ def test_no_strain_is_an_error_of_the_strain_step(small_series, tmp_path, monkey
     # LK tracks: the subsets are the advice; subsets whose σ exceeds the tracking's cap:
     # the frames' information is the limit, with the numbers
     with pytest.raises(SemlabError, match="try track_method='subset'"):
-        series.run_strain(small_series, lost)
+        series.run_strain(small_series, lost, dense_method="subsets")
     weak = dataclasses.replace(lost, tracks=dataclasses.replace(
         lost.tracks, method="subset", params={**tr.params, "max_sigma_px": 0.1},
         sigma_px=np.full(tr.sigma_px.shape, 0.3)))
     with pytest.raises(SemlabError, match=r"median predicted 1σ is 0\.30 px and 100 % of them "
                                           r"exceed the 0\.1 px.*less noise") as info:
-        series.run_strain(small_series, weak)
+        series.run_strain(small_series, weak, dense_method="subsets")
     assert "track_method='subset'" not in str(info.value)
     sharp = dataclasses.replace(weak, tracks=dataclasses.replace(
         weak.tracks, sigma_px=np.full(tr.sigma_px.shape, 0.01)))
     with pytest.raises(SemlabError, match="failed the tracking's other checks"):
-        series.run_strain(small_series, sharp)
+        series.run_strain(small_series, sharp, dense_method="subsets")
 
 
 @pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
@@ -169,3 +171,28 @@ def test_the_dense_strain_method_is_a_setting_of_the_analysis(small_series, tmp_
             != var.config.for_step("strain")["dense_strain_method"])
     with pytest.raises(SemlabError, match="dense_strain_method = 'dic'.*'subsets'"):
         semlab.AnalysisConfig(dense_strain_method="dic")
+
+
+@pytest.mark.filterwarnings("ignore::semlab.tracking.TrackingWarning")
+def test_without_valid_tracks_the_dense_strain_comes_from_the_map_alone(small_series):
+    """No frame before the last with enough valid tracks: the variational map still gives the
+    dense strain, from frame 0 (found frame by frame back from the last), with its 1σ; no
+    sparse strain, and a warning of the step says so. It agrees with the map started from
+    every track as if valid (the same frames), within its 1σ."""
+    r = series.run_tracking(small_series, progress=False, grid_kw={"spacing_px": 16})
+    tr = r.tracks
+    allv = dataclasses.replace(r, tracks=dataclasses.replace(
+        tr, valid=np.isfinite(tr.xy).all(axis=2)))
+    lost = dataclasses.replace(r, tracks=dataclasses.replace(
+        tr, valid=np.vstack([np.zeros_like(tr.valid[:-1]), tr.valid[-1:]])))
+    with pytest.warns(semlab.SemlabWarning, match="sparse strain: none.*dense strain is the "
+                                                  "variational map's alone, from frame 0"):
+        S = series.run_strain(small_series, lost)
+    assert S["ref_frame"] == 0 and not S["sparse_strain"]
+    assert S["pts_px"].shape == (0, 2) and np.isnan(S["gauge_length_um"])
+    with_tracks = series.run_strain(small_series, allv)
+    assert with_tracks["ref_frame"] == 0 and with_tracks["sparse_strain"]
+    E3 = lambda d: np.stack([d["E"][..., 0, 0], d["E"][..., 1, 1], d["E"][..., 0, 1]], -1)  # noqa: E731
+    diff = np.abs(E3(S) - E3(with_tracks))
+    assert np.isfinite(diff).mean() > 0.9
+    assert np.nanmedian(diff / S["E_sigma"]) < 0.25

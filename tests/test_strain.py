@@ -575,3 +575,42 @@ def test_frames_larger_than_a_tile_get_the_tiled_map():
     for c, (i, j) in enumerate(((0, 0), (1, 1), (0, 1))):
         d = np.abs(T["E"][..., i, j] - S["E"][..., i, j]) / S["E_sigma"][..., c]
         assert d.max() < 0.1, (c, d.max())
+
+
+def test_chained_flow_start_reaches_a_frame_beyond_one_maps_reach():
+    """Frames moving 5 px a frame (and stretching 0.4 % a frame): the map from the last frame
+    straight into frame 0 from a zero start is lost (15 px, beyond its pyramid's reach), the
+    map started from the frame-by-frame chain finds the known displacement."""
+    from scipy import ndimage
+
+    from semlab.flow import variational_flow
+    from semlab.strain import chained_flow_start
+
+    rng = np.random.default_rng(4)
+    h, w, n_frames = 80, 112, 4
+    base = ndimage.gaussian_filter(rng.normal(size=(h + 80, w + 80)), 2.0)
+    c = ((w - 1) / 2, (h - 1) / 2)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+
+    def moved(k):  # displacement (x, y) of every last-frame pixel into frame k, and frame k
+        n = n_frames - 1 - k
+        t, e = (5.0 * n, -1.0 * n), 0.004 * n
+        px, py = c[0] + (xx - c[0] - t[0]) / (1 + e), c[1] + (yy - c[1] - t[1]) / (1 + e)
+        img = ndimage.map_coordinates(base, [py + 40, px + 40], order=3)
+        return t[0] + e * (xx - c[0]), t[1] + e * (yy - c[1]), img + 0.01 * rng.normal(size=(h, w))
+
+    frames = [moved(k)[2] for k in range(n_frames)]
+    tu, tv, _ = moved(0)
+    inner = (slice(20, -20), slice(30, -30))
+    start = chained_flow_start(frames, 0)
+    assert start.shape == (h, w, 2)
+    u, v, _ = variational_flow(frames[-1], frames[0], start[..., 0], start[..., 1])
+    assert np.abs(u - tu)[inner].max() < 0.15 and np.abs(v - tv)[inner].max() < 0.15
+    u, v, _ = variational_flow(frames[-1], frames[0], np.zeros((h, w)), np.zeros((h, w)))
+    assert np.abs(u - tu)[inner].max() > 2.0
+    # the last frame's own start is none; a shape the map cannot take is refused
+    assert np.array_equal(chained_flow_start(frames, n_frames - 1), np.zeros((h, w, 2)))
+    xy = np.zeros((n_frames, 8, 2))
+    with pytest.raises(SemlabError, match="dense_start_px must be a finite"):
+        strain_from_tracks(frames, xy, np.zeros((n_frames, 8), bool), 0.03, 0,
+                           dense_start_px=np.zeros((h, w)))

@@ -646,7 +646,12 @@ S = {}
 if tr is not None:
     S = an.optional("strain") or {}  # said once, as the error of the strain step
 if S:
-    print(f"reference frame {S['ref_frame']}, gauge length {S['gauge_length_um']:.2f} µm")
+    if S.get("sparse_strain", True):
+        print(f"reference frame {S['ref_frame']}, gauge length {S['gauge_length_um']:.2f} µm")
+    else:
+        print(f"reference frame {S['ref_frame']}: no frame had enough valid tracks, so no "
+              "sparse strain; the dense strain is the variational map's alone (see the "
+              "step's warning)")
     measured = np.isfinite(S["E"][..., 0, 0])
     if S["dense_method"] == "variational":
         print(f"dense displacement: variational map (prior scale "
@@ -695,8 +700,9 @@ if S and "E_sigma" in S:
     md("## Sparse strain (tracks) and the surface strain with heights"),
     code('''
 if S:
-    print("triangles: mean E", np.round(np.nanmean(S["E_tri"], axis=0), 5).tolist())
-    print("local LSQ: mean E", np.round(np.nanmean(S["E_lsq"], axis=0), 5).tolist())
+    if len(S["pts_px"]):
+        print("triangles: mean E", np.round(np.nanmean(S["E_tri"], axis=0), 5).tolist())
+        print("local LSQ: mean E", np.round(np.nanmean(S["E_lsq"], axis=0), 5).tolist())
     if "E_surface" in S:
         print("surface strain incl. out-of-plane gradients: mean E",
               np.round(np.nanmean(S["E_surface"], axis=(0, 1)), 5).tolist())
