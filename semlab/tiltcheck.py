@@ -232,11 +232,7 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
     b_in = betas[inside][np.argmin(chi[inside])]
     pred_in = _predicted_scale(th, r, b_in)
     dev = np.abs(A - pred_in) / As
-    # tilts explaining the x-scales on a level surface, the given order kept
-    c = np.clip(A * np.cos(th[r]), -1.0, 1.0)
-    sign = np.where(t >= t[r], 1.0, -1.0)
-    sugg = np.rad2deg(sign * np.arccos(c))
-    sugg[r] = t[r]
+    sugg = _level_tilts(A, t, r)
     ok_scale = bool(np.all(dev <= k))
     phi_ref = th[r] + b_in
     cj = np.clip(A * np.cos(phi_ref), -1.0, 1.0)
@@ -295,6 +291,25 @@ def check_tilts(pts, tilt_deg, sigma_px=None, ref_view=0, region=None, pixel_siz
     if strict and msgs:
         raise GeometryError("; ".join(msgs))
     return res
+
+
+def _level_tilts(A, t, r):
+    """Tilts (degrees) explaining the x-scales ``A`` (relative to view ``r``) on a level
+    surface, ``cos θ_j = A_j cos θ_r``, in the order of the given tilts ``t``: the reference
+    view's tilt kept where it can be; where a view's x-scale is larger than ``1 / cos θ_r``
+    allows (it is nearer 0° than the reference could be), that view at 0° and the others
+    from it."""
+    sign = np.where(t >= t[r], 1.0, -1.0)
+    if np.nanmax(A) * np.cos(np.deg2rad(t[r])) <= 1.0:
+        out = np.rad2deg(sign * np.arccos(np.clip(A * np.cos(np.deg2rad(t[r])), -1.0, 1.0)))
+        out[r] = t[r]
+        return out
+    m = int(np.nanargmax(A))
+    cos_r = 1.0 / A[m]
+    side = np.where(t >= t[m], 1.0, -1.0)              # each view's side of the level one
+    out = np.rad2deg(side * np.arccos(np.clip(A * cos_r, -1.0, 1.0)))
+    out[m] = 0.0
+    return out
 
 
 def _relief_by_points(par, sigma_px, noise):

@@ -454,6 +454,12 @@ def test_contradicting_tilts_are_refused_with_the_tilts_to_use():
         check_tilts(pts3, (-5.0, 0.0, 25.0), sigma_px=0.03)
     chk = check_tilts(pts3, (-5.0, 0.0, 25.0), sigma_px=0.03, strict=False)
     assert np.allclose(chk.suggested_tilt_deg, (-5.0, 0.0, 5.0), atol=0.5)
+    # views at 13° and 0° given as 3° and 0°: view 1's x-scale (1/cos 13°) is more than a
+    # level surface allows from 3°; the tilts to use put it at 0°, not the given ones again
+    pts = noisy(project(xyz, (13.0, 0.0)), 0.03)
+    with pytest.raises(GeometryError, match=r"tilt_deg = \[3.0, 0.0\] contradicts") as e:
+        check_tilts(pts, (3.0, 0.0), sigma_px=0.03)
+    assert "Tilts that fit the views: tilt_deg = [13.0, 0.0]" in str(e.value)
 
 
 def test_too_few_points_leave_the_tilts_unchecked():
