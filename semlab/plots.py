@@ -520,9 +520,12 @@ def plot_band_profiles(profiles, ncols=3, size=3.2):
         plot_profile(p, ax=ax)
         if np.isfinite(p.get("baseline_um", np.nan)):
             ax.axhline(p["baseline_um"] * 1e3, color="k", ls=":", lw=0.8)
-        ax.set_title(f"band {p['band'].band_id}: +{1e3 * p['extrusion_um']:.0f}±"
-                     f"{1e3 * p['extrusion_err_um']:.0f} / −{1e3 * p['intrusion_um']:.0f}±"
-                     f"{1e3 * p['intrusion_err_um']:.0f} nm, w {p['width_um']:.2f} µm",
+        # the highest and the lowest point against the baseline, signed (an "intrusion" whose
+        # lowest point is above the baseline is a positive height, not "−-")
+        hi, lo = (f"{1e3 * v:+.0f}".replace("-", "−")
+                  for v in (p["extrusion_um"], -p["intrusion_um"]))
+        ax.set_title(f"band {p['band'].band_id}: {hi}±{1e3 * p['extrusion_err_um']:.0f} / "
+                     f"{lo}±{1e3 * p['intrusion_err_um']:.0f} nm, w {p['width_um']:.2f} µm",
                      fontsize=8)
         ax.set_xlabel("across the trace (µm)")
     for ax in axs.ravel()[len(profiles):]:

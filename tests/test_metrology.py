@@ -197,6 +197,13 @@ def test_band_plots():
     fig = plots.plot_band_profiles(profs)
     titles = [ax.get_title() for ax in fig.axes if ax.get_visible()]
     assert len(titles) == len(bands) and titles[0].startswith("band 0")
+    # the lowest point signed: below the baseline "−45", above it "+45", never "−-45"
+    odd = dict(profs[0], extrusion_um=0.236, intrusion_um=-0.045)
+    title = plots.plot_band_profiles([odd]).axes[0].get_title()
+    assert "+236±" in title and "/ +45±" in title and "−-" not in title
+    deep = dict(profs[0], extrusion_um=0.236, intrusion_um=0.045)
+    assert "/ −45±" in plots.plot_band_profiles([deep]).axes[0].get_title()
+    plt.close("all")
     ax = plots.show_bands(z, bands)
     assert len(ax.lines) == len(bands)
     # in µm axes the traces are drawn in µm too, over the map, and the view is the map's
