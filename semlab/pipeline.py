@@ -690,6 +690,9 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
 
     if exp.stereo is None:
         raise SemlabError(f"{exp.toml_path}: no [stereo] table, so no heights to compute")
+    if (len(exp.stereo.view_paths) == 2 and exp.stereo.tilt_deg is None
+            and exp.lines() is None):      # refused before any matching, not after it
+        raise GeometryError(f"{exp.toml_path}: " + reconstruct.TWO_VIEW_MESSAGE)
     views = exp.views()
     corr = exp.correspondences()
     clicks = None if corr is None or len(corr.pts) == 0 else corr.pts

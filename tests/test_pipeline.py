@@ -85,11 +85,18 @@ def test_pair_consistency_summary_is_one_note_naming_the_pairs_that_fail():
                                              90.0) == ([], [])
 
 
-def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path):
+def test_two_views_without_tilt_or_lines_raise_bas_relief(tmp_path, monkeypatch):
+    """Refused before any matching (a fresh-user run waited 7 min for it on 768×715 views)."""
     exp = _make(tmp_path, seed=1, size=(128, 160), tilt_in_toml=False, tilt_in_metadata=False,
                 write_block=False, n_clicks=12)
-    with pytest.raises(GeometryError, match="bas-relief"):
-        pipeline.run_stereo(exp, method="refined", n_boot=0, progress=False)
+
+    def no_matching(*a, **k):
+        raise AssertionError("matched before refusing")
+
+    monkeypatch.setattr(pipeline, "match_views", no_matching)
+    for method in ("refined", "auto"):
+        with pytest.raises(GeometryError, match="bas-relief"):
+            pipeline.run_stereo(exp, method=method, n_boot=0, progress=False)
 
 
 def test_empty_correspondences_file_means_automatic_matching(tmp_path):
