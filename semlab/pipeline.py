@@ -723,7 +723,10 @@ def run_stereo(exp, method=None, n_boot=200, seed=0, progress=True, refine_kw=No
         calib["vanishing"], lines_cal = vanishing_summary(lines)
     axis, axis_sigma = float(epi["pairs"][0]["tilt_axis_deg"][0]), float("nan")
     if epi["pairs"][0].get("F_affine") is not None:
-        axis, axis_sigma = tiltcheck.tilt_axis_sigma(pts[:, 0], pts[:, 1], seed=seed)
+        sig = np.asarray(sigma_px, float)
+        axis, axis_sigma = tiltcheck.tilt_axis_sigma(
+            pts[:, 0], pts[:, 1], seed=seed,
+            bias_px=float(np.nanmedian(sig)) if np.isfinite(sig).any() else None)
     calib["tilt_axis_measured_deg"], calib["tilt_axis_sigma_deg"] = axis, axis_sigma
     if tiltcheck.axis_is_significant(axis, axis_sigma, AXIS_SIGNIFICANCE, AXIS_TOLERANCE_DEG):
         axis_used = axis

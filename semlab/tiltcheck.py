@@ -346,12 +346,19 @@ def _unchecked(t, message):
                      message=message)
 
 
-def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):
+def tilt_axis_sigma(x0, x1, n_boot=200, seed=0, bias_px=None):
     """Tilt-axis direction in view 0 from the affine F, with its 1σ.
 
     The σ is the spread over random half-samples of the points (without replacement, since
     the affine F refuses duplicate points): a delete-N/2 jackknife, whose variance equals
-    that of the estimate from all N points (Shao & Wu 1989).
+    that of the estimate from all N points (Shao & Wu 1989). That spread falls as 1/√N and
+    misses a matching error shared by the points: the axis is read from how the y-disparity
+    follows the relief's part of the x-parallax, so a y-error of ``bias_px`` that follows
+    the parallax (a slip band's aperture problem) turns it by up to
+    ``atan(bias_px / relief)``, ``relief`` the RMS x-parallax left by the views' affine map.
+    With ``bias_px`` that term is added in quadrature: on a 0/+8° polished scene with a
+    little relief (``semlab synth --seed 11 --texture polished --noise realistic
+    --tilts=0,8``) the axis came out at 97.0 ± 0.11° (half-samples) where the truth is 90°.
 
     Parameters
     ----------
@@ -359,6 +366,8 @@ def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):
     n_boot : int
         Half-samples.
     seed : int
+    bias_px : float, optional
+        A matching error the points may share, pixels (e.g. their median predicted σ).
 
     Returns
     -------
@@ -366,7 +375,8 @@ def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):
         In [0, 180), from +x toward +y (90 = image y), from all points
         (:func:`semlab.epipolar.affine_tilt_axis`).
     sigma_deg : float
-        1σ over the resamples (NaN with fewer than 2 successful resamples).
+        1σ over the resamples (NaN with fewer than 2 successful resamples), with the shared
+        error's term when ``bias_px`` is given.
     """
     from .epipolar import affine_tilt_axis, fundamental_affine
 
@@ -383,7 +393,13 @@ def tilt_axis_sigma(x0, x1, n_boot=200, seed=0):
     if len(boots) < 2:
         return axis, float("nan")
     d = (np.array(boots) - axis + 90.0) % 180.0 - 90.0   # axes are defined modulo 180°
-    return axis, float(np.std(d, ddof=1))
+    sig = float(np.std(d, ddof=1))
+    if bias_px is not None:
+        M = np.column_stack([a, np.ones(len(a))])
+        r = b[:, 0] - M @ np.linalg.lstsq(M, b[:, 0], rcond=None)[0]
+        relief = float(np.sqrt(np.mean(r ** 2)))
+        sig = float(np.hypot(sig, np.rad2deg(np.arctan2(float(bias_px), relief))))
+    return axis, sig
 
 
 def axis_is_significant(axis_deg, sigma_deg, k=3.0, tolerance_deg=0.0):

@@ -517,6 +517,21 @@ def test_tilt_axis_rotated_only_when_significant():
     rot = pts @ r.T
     axis_r, sig_r = tilt_axis_sigma(rot[:, 0], rot[:, 1], n_boot=100)
     assert abs(axis_r - 93.0) < 4 * sig_r and axis_is_significant(axis_r, sig_r)
+    # a y-error of the matches that follows the relief's parallax (0.05 px at its largest,
+    # the matching σ here) turns the axis; the half-samples call it significant, the shared
+    # error's term does not. A 30° scan rotation stays significant with that term.
+    par = pts[:, 1, 0] - pts[:, 0, 0]
+    rel = par - np.polyval(np.polyfit(pts[:, 0, 0], par, 1), pts[:, 0, 0])
+    biased = pts.copy()
+    biased[:, 1, 1] += 0.05 * rel / np.abs(rel).max()
+    axis_b, sig_b = tilt_axis_sigma(biased[:, 0], biased[:, 1], n_boot=100)
+    assert axis_is_significant(axis_b, sig_b)                  # the false rotation
+    axis_b, sig_b = tilt_axis_sigma(biased[:, 0], biased[:, 1], n_boot=100, bias_px=0.05)
+    assert not axis_is_significant(axis_b, sig_b)
+    a = np.deg2rad(30.0)
+    r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    axis_30, sig_30 = tilt_axis_sigma(pts[:, 0] @ r.T, pts[:, 1] @ r.T, n_boot=100, bias_px=0.05)
+    assert abs(axis_30 - 120.0) < 3 * sig_30 and axis_is_significant(axis_30, sig_30)
 
 
 def test_estimated_tilt_differences_agree_with_the_x_scales():
