@@ -266,6 +266,16 @@ def _keep_failed(stage, out):
     return failed
 
 
+def step_warning_lines(warnings_by_step):
+    """``semlab: warning (steps): message`` lines, each message once with every step that
+    said it (the refined-clicks and the stereo step repeat the same clicks' warning)."""
+    steps_of = {}
+    for step, said in warnings_by_step.items():
+        for msg in said:
+            steps_of.setdefault(msg, []).append(step)
+    return [f"semlab: warning ({', '.join(steps)}): {msg}" for msg, steps in steps_of.items()]
+
+
 def run(experiment, out, force=False, only=None, progress=True, kernel_name=None, config=None):
     """Run the analysis of an experiment, then execute the notebooks on its results.
 
@@ -334,9 +344,8 @@ def run(experiment, out, force=False, only=None, progress=True, kernel_name=None
         analysis = Analysis(exp, stage, config=config, progress=progress, cache_dir=cache_dir)
         wanted = {s for nb in nbs for s in NOTEBOOK_STEPS.get(nb.name[:2], ())}
         status = analysis.run([s for s in analysis.applicable_steps() if s in wanted])
-        for step, said in analysis.warnings.items():
-            for msg in said:
-                print(f"semlab: warning ({step}): {msg}", file=sys.stderr)
+        for line in step_warning_lines(analysis.warnings):
+            print(line, file=sys.stderr)
         params = {"experiment": str(exp.root), "out_dir": str(stage),
                   "cache_dir": str(cache_dir), "config": analysis.config.as_dict()}
         entries = []

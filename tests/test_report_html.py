@@ -26,3 +26,16 @@ def test_pages_link_one_shared_style_sheet(tmp_path):
         assert f'<link rel="stylesheet" href="{REPORT_CSS}">' in html
         assert text in html and len(html) < 60_000
         assert ".jp-Notebook" not in html.split("</head>")[0]     # the big CSS is not inline
+
+
+def test_a_warning_said_by_several_steps_is_printed_once():
+    from semlab.report import step_warning_lines
+
+    said = {"stereo": ["10 clicks left out", "tilts from the stage"],
+            "tracking": ["no valid track in frame 0"],
+            "stereo_refined": ["10 clicks left out"]}
+    assert step_warning_lines(said) == [
+        "semlab: warning (stereo, stereo_refined): 10 clicks left out",
+        "semlab: warning (stereo): tilts from the stage",
+        "semlab: warning (tracking): no valid track in frame 0"]
+    assert step_warning_lines({}) == []
