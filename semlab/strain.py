@@ -865,13 +865,16 @@ def chained_flow_start(frames, ref_frame, registration=None, params=None, progre
         return (registration.transforms[k](p) - p).reshape(h, w, 2)
 
     last = len(frames) - 1
-    d = np.zeros((h, w, 2))
-    for k in tqdm(range(last - 1, ref_frame, -1), desc="dense map, frame by frame",
+    d, before = np.zeros((h, w, 2)), drift(last)
+    for k in tqdm(range(last - 1, ref_frame - 1, -1), desc="dense map, frame by frame",
                   disable=not progress):
-        d = d + drift(k) - drift(k + 1)
-        u, v, _ = variational_flow(frames[-1], frames[k], d[..., 0], d[..., 1], params=params)
-        d = np.stack([u, v], -1)
-    return d + drift(ref_frame) - drift(ref_frame + 1) if ref_frame < last else d
+        now = drift(k)
+        d, before = d + now - before, now
+        if k > ref_frame:                      # the map into ref_frame is the caller's
+            u, v, _ = variational_flow(frames[-1], frames[k], d[..., 0], d[..., 1],
+                                       params=params)
+            d = np.stack([u, v], -1)
+    return d
 
 
 def _dense_sigma(samples_px, bias_px, ux, uy, E, step_px, s, window):

@@ -299,16 +299,14 @@ def _level_tilts(A, t, r):
     view's tilt kept where it can be; where a view's x-scale is larger than ``1 / cos θ_r``
     allows (it is nearer 0° than the reference could be), that view at 0° and the others
     from it."""
-    sign = np.where(t >= t[r], 1.0, -1.0)
-    if np.nanmax(A) * np.cos(np.deg2rad(t[r])) <= 1.0:
-        out = np.rad2deg(sign * np.arccos(np.clip(A * np.cos(np.deg2rad(t[r])), -1.0, 1.0)))
-        out[r] = t[r]
-        return out
-    m = int(np.nanargmax(A))
-    cos_r = 1.0 / A[m]
-    side = np.where(t >= t[m], 1.0, -1.0)              # each view's side of the level one
+    cos_r = np.cos(np.deg2rad(t[r]))
+    anchor, at = r, t[r]                               # a view whose tilt is kept
+    if np.nanmax(A) * cos_r > 1.0:
+        anchor, at = int(np.nanargmax(A)), 0.0
+        cos_r = 1.0 / A[anchor]
+    side = np.where(t >= t[anchor], 1.0, -1.0)         # each view's side of the anchor
     out = np.rad2deg(side * np.arccos(np.clip(A * cos_r, -1.0, 1.0)))
-    out[m] = 0.0
+    out[anchor] = at
     return out
 
 
